@@ -1,0 +1,73 @@
+"""Image I/O and colour transfer: sRGB <-> linear, 8/16-bit PNG, EXR (OpenEXR), all atomic."""
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from .atomic import atomic_path
+
+
+def srgb_to_linear(img: np.ndarray) -> np.ndarray:
+    """8-bit (or [0,1] float) sRGB -> linear float32 in [0,1] (IEC 61966-2-1 EOTF)."""
+    x = img.astype(np.float32) / 255.0 if img.dtype == np.uint8 else img.astype(np.float32)
+    return np.where(x <= 0.04045, x / 12.92, ((x + 0.055) / 1.055) ** 2.4).astype(np.float32)
+
+
+def linear_to_srgb(img: np.ndarray) -> np.ndarray:
+    """Linear float -> 8-bit sRGB (clipped to [0,1], non-finite values become 0)."""
+    x = np.clip(np.nan_to_num(img.astype(np.float32), nan=0.0, posinf=1.0, neginf=0.0), 0.0, 1.0)
+    y = np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055)
+    return np.clip(np.round(y * 255.0), 0, 255).astype(np.uint8)
+
+
+def read_rgb(path: str | os.PathLike) -> np.ndarray:
+    """Any colour image OpenCV reads -> HxWx3 uint8 RGB; clear error naming the file."""
+    img = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    if img is None:
+        raise ValueError(f"{path}: not a readable colour image")
+    return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
+
+
+def write_png_rgb(path: str | os.PathLike, rgb8: np.ndarray) -> None:
+    with atomic_path(path, ".png") as tmp:
+        if not cv2.imwrite(str(tmp), cv2.cvtColor(rgb8, cv2.COLOR_RGB2BGR)):
+            raise OSError(f"{path}: could not write PNG")
+
+
+def write_png16(path: str | os.PathLike, img16: np.ndarray) -> None:
+    with atomic_path(path, ".png") as tmp:
+        if not cv2.imwrite(str(tmp), img16.astype(np.uint16)):
+            raise OSError(f"{path}: could not write 16-bit PNG")
+
+
+def write_exr(path: str | os.PathLike, rgb: np.ndarray) -> None:
+    """Linear HxWx3 float32 -> OpenEXR (RGB channels)."""
+    import OpenEXR
+
+    header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
+    with atomic_path(path, ".exr") as tmp:
+        OpenEXR.File(header, {"RGB": np.ascontiguousarray(rgb, dtype=np.float32)}).write(str(tmp))
+
+
+def read_exr(path: str | os.PathLike) -> np.ndarray:
+    import OpenEXR
+
+    with OpenEXR.File(str(path)) as f:
+        ch = f.channels()
+        if "RGB" in ch:
+            return np.asarray(ch["RGB"].pixels, dtype=np.float32)
+        return np.stack([np.asarray(ch[c].pixels, dtype=np.float32) for c in "RGB"], axis=-1)
+
+
+def read_hdr(path: str | os.PathLike) -> np.ndarray:
+    """Radiance .hdr / .exr environment map -> HxWx3 linear float32 RGB."""
+    p = Path(path)
+    if p.suffix.lower() == ".exr":
+        return read_exr(p)
+    img = cv2.imread(str(p), cv2.IMREAD_ANYDEPTH | cv2.IMREAD_COLOR)
+    if img is None:
+        raise ValueError(f"{path}: not a readable HDR image")
+    return cv2.cvtColor(img, cv2.COLOR_BGR2RGB).astype(np.float32)

@@ -1,0 +1,94 @@
+"""Typed values passed between pipeline stages (plain dataclasses around numpy arrays).
+
+Conventions (docs/conventions.md): metres, OpenCV camera frame, 4x4 float64 camera-to-world poses,
+colour images RGB-ordered 8-bit sRGB, depth float32 metres with 0/NaN invalid.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class Intrinsics:
+    """Pinhole intrinsics in pixels (OpenCV: pixel centres at integer coordinates)."""
+
+    width: int
+    height: int
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    depth_scale: float = 1000.0  # depth-image units per metre (TUM: 5000)
+
+    @property
+    def K(self) -> np.ndarray:
+        return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
+
+    def scaled(self, factor: float) -> "Intrinsics":
+        """Intrinsics of the image resized by `factor` (pixel-centre convention kept)."""
+        w, h = int(round(self.width * factor)), int(round(self.height * factor))
+        return Intrinsics(w, h, self.fx * factor, self.fy * factor,
+                          (self.cx + 0.5) * factor - 0.5, (self.cy + 0.5) * factor - 0.5, self.depth_scale)
+
+    def to_json(self) -> dict:
+        return {"width": self.width, "height": self.height, "fx": self.fx, "fy": self.fy,
+                "cx": self.cx, "cy": self.cy, "depth_scale": self.depth_scale}
+
+
+@dataclass
+class Frame:
+    """One RGB-D frame as read from a recording."""
+
+    index: int                      # 0-based position in the recording's frame order
+    timestamp: float                # seconds
+    color: np.ndarray               # HxWx3 uint8, sRGB, RGB order
+    depth: np.ndarray               # HxW float32 metres, 0 or NaN = invalid
+    intrinsics: Intrinsics
+    pose: np.ndarray | None = None  # 4x4 float64 camera-to-world, None when unknown
+    source: str = ""                # file the colour came from, for error messages
+
+
+@dataclass
+class Lighting:
+    """SH coefficients of distant incident radiance, shape (3, B*B), world frame."""
+
+    sh: np.ndarray
+
+    @property
+    def bands(self) -> int:
+        return int(round(np.sqrt(self.sh.shape[1])))
+
+
+@dataclass
+class SolveDiagnostics:
+    """How much the per-frame lighting solve can be trusted."""
+
+    n_samples: int = 0
+    condition_number: float = float("inf")
+    effective_rank: int = 0
+    residual_rms: float = 0.0
+    weak: bool = True
+    notes: list[str] = field(default_factory=list)
+
+    def to_json(self) -> dict:
+        cond = self.condition_number
+        return {"n_samples": int(self.n_samples),
+                "condition_number": float(cond) if np.isfinite(cond) else None,
+                "effective_rank": int(self.effective_rank),
+                "residual_rms": float(self.residual_rms), "weak": bool(self.weak),
+                "notes": list(self.notes)}
+
+
+@dataclass
+class FrameResult:
+    """Everything the pipeline produced for one frame."""
+
+    index: int
+    timestamp: float
+    lighting: Lighting
+    diagnostics: SolveDiagnostics
+    dominant_direction: np.ndarray
+    timings_ms: dict[str, float] = field(default_factory=dict)
+    composite: np.ndarray | None = None  # HxWx3 linear float32, when virtual objects were inserted

@@ -1,0 +1,33 @@
+#!/usr/bin/env bash
+# The one install path for README, CI and Docker.
+# usage: scripts/install.sh [EXTRAS]   (default extras: render,synth,plot,test)
+# Picks the Open3D build: the CUDA one where nvidia-smi sees a GPU (or PHOTOREG_CUDA=1), else open3d-cpu.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+extras=${1:-render,synth,plot,test}
+py=${PYTHON:-python3}
+
+# Debian packages: libusb (open3d import), EGL/OSMesa (pyrender offscreen), LLVM 19 (Mitsuba llvm_ad_rgb).
+debs="libusb-1.0-0 libgomp1 libegl1 libgl1 libegl-mesa0 libgl1-mesa-dri libosmesa6 libllvm19"
+if command -v apt-get >/dev/null 2>&1; then
+  missing=$(for d in $debs; do dpkg -s "$d" >/dev/null 2>&1 || echo "$d"; done)
+  if [ -n "$missing" ]; then
+    sudo=""; [ "$(id -u)" = 0 ] || sudo="sudo"
+    $sudo apt-get update -qq
+    # shellcheck disable=SC2086
+    DEBIAN_FRONTEND=noninteractive $sudo apt-get install -y -qq --no-install-recommends $missing
+  fi
+fi
+
+if [ "${PHOTOREG_CUDA:-}" = 1 ] || { command -v nvidia-smi >/dev/null 2>&1 && nvidia-smi -L >/dev/null 2>&1; }; then
+  o3d=cuda
+else
+  o3d=cpu
+fi
+$py -m pip install -q --upgrade pip
+$py -m pip install -q -e ".[$o3d,$extras]"
+# pyrender 0.1.45 pins PyOpenGL 3.1.0, which fails under OSMesa: 3.1.10 over it.
+if [[ ",$extras," == *",render,"* ]]; then
+  $py -m pip install -q --no-deps "PyOpenGL==3.1.10"
+fi
+echo "photoreg installed (open3d: $o3d, extras: $extras)"
