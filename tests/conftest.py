@@ -24,5 +24,7 @@ def data_dir() -> Path:
     """The shared recordings/HDR/meshes; skips with a reason when absent (CI turns that into a failure)."""
     p = shared_data()
     if p is None:
+        if os.environ.get("CI"):
+            pytest.fail("shared data not found in CI: PHOTOREG_DATA must point at the shared data folder")
         pytest.skip("shared data not found: set PHOTOREG_DATA to the folder holding recordings/, hdr/, meshes/")
     return p

@@ -1,0 +1,218 @@
+"""Run configuration as dataclasses; TOML session files (sessions/*.toml) load into them.
+
+Unknown keys, wrong types and missing files are errors naming the file and the key, raised before
+any frame is processed. Relative paths are relative to the session file's folder.
+"""
+from __future__ import annotations
+
+import dataclasses
+import sys
+import typing
+from dataclasses import dataclass, field
+from pathlib import Path
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # pragma: no cover
+    import tomli as tomllib
+
+
+@dataclass
+class RecordingConfig:
+    path: str = ""
+    format: str = "auto"          # auto | native | tum | redwood | 7scenes
+    undistort: bool = False
+    use_poses: bool = True        # False: track the camera (frame-to-model odometry)
+
+
+@dataclass
+class ReconstructionConfig:
+    voxel_size: float = 0.01      # metres
+    trunc_voxels: float = 4.0     # truncation distance in voxels
+    depth_min: float = 0.1        # metres
+    depth_max: float = 4.0        # metres
+    block_count: int = 40000      # Open3D hash-map capacity (blocks of 16^3 voxels)
+
+
+@dataclass
+class LightingConfig:
+    bands: int = 3                # SH bands B (B*B coefficients)
+    rays: int = 64                # visibility rays per sample over the hemisphere
+    stride: int = 4               # sample every n-th pixel in x and y
+    ray_length: float = 0.5       # metres
+    ray_offset_voxels: float = 1.5
+    min_visible: float = 0.05     # drop samples with >95% of rays blocked (paper)
+    weighting: str = "bins"       # bins | density | none (normal-distribution weighting)
+    regularization: float = 1e-3  # Tikhonov strength, relative to the data scale
+    mode: str = "rgb"             # rgb | white
+    saturation_level: int = 250   # 8-bit value at or above which a pixel counts as saturated
+    black_level: int = 3          # 8-bit value at or below which a pixel counts as black
+    denoise: str = "none"         # none | tvl1 | guided: edge-preserving luminance denoising
+
+
+@dataclass
+class ObjectConfig:
+    mesh: str = ""
+    position: list = field(default_factory=lambda: [0.0, 0.0, 0.0])
+    rotation: list = field(default_factory=lambda: [0.0, 0.0, 0.0])  # degrees, scipy 'xyz'
+    scale: float = 1.0
+    albedo: list = field(default_factory=lambda: [0.8, 0.8, 0.8])    # linear RGB
+
+
+@dataclass
+class RenderConfig:
+    shadows: str = "voxel"        # voxel | shadowmap | neural_soft | neural_shadowmap | none
+
+
+@dataclass
+class OutputConfig:
+    dir: str = "out"
+    pictures_every: int = 10      # write lat-long and lit-sphere pictures every k-th frame (0 = never)
+
+
+@dataclass
+class Session:
+    recording: RecordingConfig = field(default_factory=RecordingConfig)
+    reconstruction: ReconstructionConfig = field(default_factory=ReconstructionConfig)
+    lighting: LightingConfig = field(default_factory=LightingConfig)
+    objects: list = field(default_factory=list)   # list[ObjectConfig]
+    render: RenderConfig = field(default_factory=RenderConfig)
+    output: OutputConfig = field(default_factory=OutputConfig)
+    device: str = "auto"
+    frames: str = ""              # "", "N", "A:B" or "A:B:S"
+    source: str = ""              # the session file, for messages
+
+
+_CHOICES = {
+    ("recording", "format"): {"auto", "native", "tum", "redwood", "7scenes"},
+    ("lighting", "weighting"): {"bins", "density", "none"},
+    ("lighting", "mode"): {"rgb", "white"},
+    ("lighting", "denoise"): {"none", "tvl1", "guided"},
+    ("render", "shadows"): {"voxel", "shadowmap", "neural_soft", "neural_shadowmap", "none"},
+    ("", "device"): {"auto", "cpu", "cuda"},
+}
+
+
+def _check_value(where: str, name: str, value, typ):
+    origin = typing.get_origin(typ)
+    if typ is float and isinstance(value, (int, float)) and not isinstance(value, bool):
+        return float(value)
+    if typ is list or origin is list:
+        if not isinstance(value, list):
+            raise ValueError(f"{where}: key '{name}' must be a list, got {type(value).__name__}")
+        return value
+    if isinstance(typ, type) and isinstance(value, typ) and not (typ is int and isinstance(value, bool)):
+        return value
+    raise ValueError(f"{where}: key '{name}' must be {getattr(typ, '__name__', typ)}, got {value!r}")
+
+
+def _fill(cls, data: dict, where: str, section: str):
+    if not isinstance(data, dict):
+        raise ValueError(f"{where}: [{section}] must be a table")
+    hints = typing.get_type_hints(cls)
+    known = {f.name for f in dataclasses.fields(cls)}
+    kwargs = {}
+    for key, value in data.items():
+        if key not in known:
+            raise ValueError(f"{where}: unknown key '{section + '.' if section else ''}{key}' "
+                             f"(known: {', '.join(sorted(known))})")
+        v = _check_value(where, f"{section}.{key}" if section else key, value, hints[key])
+        choices = _CHOICES.get((section, key))
+        if choices and v not in choices:
+            raise ValueError(f"{where}: key '{section}.{key}' must be one of {sorted(choices)}, got {v!r}")
+        kwargs[key] = v
+    return cls(**kwargs)
+
+
+def _check_object(obj: ObjectConfig, where: str) -> None:
+    import numpy as np
+
+    for key, n in (("position", 3), ("rotation", 3), ("albedo", 3)):
+        v = getattr(obj, key)
+        if len(v) != n or not all(isinstance(x, (int, float)) and np.isfinite(x) for x in v):
+            raise ValueError(f"{where}: objects.{key} must be {n} finite numbers, got {v!r}")
+    if not (np.isfinite(obj.scale) and obj.scale > 0):
+        raise ValueError(f"{where}: objects.scale must be a positive finite number, got {obj.scale!r}")
+    if not obj.mesh:
+        raise ValueError(f"{where}: objects.mesh is required")
+
+
+def load_session(path: str | Path) -> Session:
+    """Parse and validate a session file; paths are resolved against its folder."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: session file not found")
+    try:
+        raw = tomllib.loads(path.read_text())
+    except tomllib.TOMLDecodeError as e:
+        raise ValueError(f"{path}: not valid TOML: {e}") from None
+    where = str(path)
+    base = path.parent
+    s = Session(source=where)
+    sections = {"recording": RecordingConfig, "reconstruction": ReconstructionConfig, "lighting": LightingConfig,
+                "render": RenderConfig, "output": OutputConfig}
+    for key, value in raw.items():
+        if key in sections:
+            setattr(s, key, _fill(sections[key], value, where, key))
+        elif key == "objects":
+            if not isinstance(value, list):
+                raise ValueError(f"{where}: 'objects' must be an array of tables ([[objects]])")
+            s.objects = [_fill(ObjectConfig, v, where, "objects") for v in value]
+        elif key in ("device", "frames"):
+            setattr(s, key, getattr(_fill(Session, {key: value}, where, ""), key))
+        else:
+            raise ValueError(f"{where}: unknown section or key '{key}' "
+                             f"(known: {', '.join(sorted([*sections, 'objects', 'device', 'frames']))})")
+    if not s.recording.path:
+        raise ValueError(f"{where}: key 'recording.path' is required")
+    s.recording.path = str(resolve_path(s.recording.path, base))
+    if not Path(s.recording.path).exists():
+        raise FileNotFoundError(f"{where}: recording.path {s.recording.path} does not exist")
+    for obj in s.objects:
+        _check_object(obj, where)
+        obj.mesh = str(resolve_path(obj.mesh, base))
+        if not Path(obj.mesh).is_file():
+            raise FileNotFoundError(f"{where}: objects.mesh {obj.mesh} does not exist")
+    s.output.dir = str(resolve_path(s.output.dir, base))
+    validate(s)
+    return s
+
+
+def resolve_path(p: str, base: Path) -> Path:
+    """Expand ~ and $PHOTOREG_DATA-style variables; relative paths are taken from `base`."""
+    import os
+
+    q = Path(os.path.expandvars(os.path.expanduser(p)))
+    return q if q.is_absolute() else (base / q).resolve()
+
+
+def validate(s: Session) -> None:
+    """Range checks shared by session files and command-line overrides."""
+    where = s.source or "options"
+    L, R = s.lighting, s.reconstruction
+    checks = [(1 <= L.bands <= 8, "lighting.bands must be in 1..8"),
+              (L.rays >= 1, "lighting.rays must be >= 1"),
+              (L.stride >= 1, "lighting.stride must be >= 1"),
+              (L.ray_length > 0, "lighting.ray_length must be > 0"),
+              (0 <= L.min_visible < 1, "lighting.min_visible must be in [0, 1)"),
+              (L.regularization >= 0, "lighting.regularization must be >= 0"),
+              (R.voxel_size > 0, "reconstruction.voxel_size must be > 0"),
+              (0 < R.depth_min < R.depth_max, "reconstruction.depth_min must be > 0 and < depth_max")]
+    for ok, msg in checks:
+        if not ok:
+            raise ValueError(f"{where}: {msg}")
+
+
+def parse_frames(spec: str, n: int) -> list[int]:
+    """'' -> all; 'N' -> first N; 'A:B' or 'A:B:S' -> range (end exclusive, clipped to n)."""
+    if not spec:
+        return list(range(n))
+    try:
+        parts = [int(x) if x else None for x in spec.split(":")]
+    except ValueError:
+        raise ValueError(f"--frames: expected N, A:B or A:B:S, got {spec!r}") from None
+    if len(parts) == 1:
+        return list(range(min(parts[0], n)))
+    if len(parts) in (2, 3):
+        return list(range(n))[slice(*parts)]
+    raise ValueError(f"--frames: expected N, A:B or A:B:S, got {spec!r}")

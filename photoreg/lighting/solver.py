@@ -1,0 +1,253 @@
+"""Per-frame SH lighting solve (Gruber et al. 2012): weighted, Tikhonov-regularised least squares.
+
+Model (DESIGN.md): the observed linear radiance of a surface sample is I(x) = rho * sum_i R(x)_i F_i
+with R the transfer from the ray caster. One unknown global albedo is absorbed into F (rho = 1), so
+the returned lighting is relative to the scene's albedo scale.
+
+Samples are weighted so that the distribution of surface normals does not decide the answer: a
+frame that is 95% floor would otherwise fit the floor's irradiance perfectly and extrapolate the
+rest of the sphere from a handful of samples.
+  * "bins" (the paper): normals are histogrammed on an equal-area spherical grid; with Q_c samples in
+    bin c and P populated bins, every sample in c gets weight 1/(Q_c * P), so each populated bin
+    carries the same total weight 1/P however many samples fell into it (over-represented bins are
+    down-weighted, sparse ones up-weighted). Weights are rescaled to mean 1.
+  * "density": inverse kernel density of normals on the sphere (von Mises-Fisher kernel of
+    `density_bandwidth` radians) - the same idea without bin edges.
+  * "none": every sample weighs the same.
+
+The system is solved through the SVD of the weighted design sqrt(W) A with Tikhonov filter factors
+s / (s^2 + lambda), i.e. exactly the least-squares solution of the stacked system
+[sqrt(W) A; sqrt(lambda) I] f = [sqrt(W) b; sqrt(lambda) f_prior]; the normal equations are never
+formed or inverted. lambda = `regularization` * trace(A^T W A) / K, so it is relative to the data.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..types import Lighting, SolveDiagnostics
+from . import sh
+
+WEIGHTINGS = ("bins", "density", "none")
+MODES = ("rgb", "white")
+
+
+@dataclass
+class SolverConfig:
+    """Settings of the per-frame lighting solve (see the module docstring for the weightings)."""
+
+    bands: int = 3
+    weighting: str = "bins"            # "bins" | "density" | "none"; default chosen by measured accuracy
+    grid_bins: int = 8                 # equal-area grid: grid_bins bands in z x 2*grid_bins in azimuth
+    density_bandwidth: float = 0.2     # radians, kernel width for weighting="density"
+    regularization: float = 1e-4       # Tikhonov lambda relative to trace(A^T W A) / K
+    min_visible: float = 0.05          # drop samples with less than this unoccluded fraction (paper: 95% blocked)
+    mode: str = "rgb"                  # "rgb": three solves; "white": one luminance solve times mean chroma
+    max_samples: int | None = 20000    # random subsample of the usable samples (fixed seed), None = all
+    seed: int = 0
+    saturation_level: float | None = 0.99  # drop samples with any channel >= this (None: keep all)
+    black_level: float = 1e-3          # drop samples whose brightest channel is <= this
+    min_samples_factor: float = 3.0    # fewer than factor * K usable samples -> weak
+    max_condition: float = 1e4         # condition number of the weighted design above this -> weak
+    rank_rtol: float = 1e-6            # singular values above rank_rtol * s_max count toward the rank
+
+    def __post_init__(self) -> None:
+        if self.bands < 1:
+            raise ValueError(f"bands must be >= 1, got {self.bands}")
+        if self.weighting not in WEIGHTINGS:
+            raise ValueError(f"weighting must be one of {WEIGHTINGS}, got {self.weighting!r}")
+        if self.mode not in MODES:
+            raise ValueError(f"mode must be one of {MODES}, got {self.mode!r}")
+        if self.grid_bins < 1 or self.density_bandwidth <= 0 or self.regularization < 0:
+            raise ValueError("grid_bins >= 1, density_bandwidth > 0 and regularization >= 0 are required")
+
+
+def bin_weights(normals: np.ndarray, grid_bins: int) -> np.ndarray:
+    """Per-sample weights 1/(Q_c * P) on an equal-area grid of normals, rescaled to mean 1.
+
+    Bins are equal-area: `grid_bins` bands uniform in z = cos(theta) times 2*grid_bins uniform in
+    azimuth, so an even spread of normals gives even counts.
+    """
+    n = np.asarray(normals, dtype=np.float64)
+    if n.shape[0] == 0:
+        return np.zeros(0)
+    iz = np.clip(((n[:, 2] + 1.0) * 0.5 * grid_bins).astype(np.int64), 0, grid_bins - 1)
+    phi = np.arctan2(n[:, 1], n[:, 0])  # [-pi, pi]
+    ip = np.clip(((phi + np.pi) / (2 * np.pi) * 2 * grid_bins).astype(np.int64), 0, 2 * grid_bins - 1)
+    _, inverse, counts = np.unique(iz * (2 * grid_bins) + ip, return_inverse=True, return_counts=True)
+    w = 1.0 / (counts[inverse] * len(counts))
+    return w * (len(w) / w.sum())
+
+
+def density_weights(normals: np.ndarray, bandwidth: float, seed: int = 0, n_ref: int = 2048) -> np.ndarray:
+    """Inverse kernel density of normals (von Mises-Fisher kernel, kappa = 1/bandwidth^2), mean 1.
+
+    The density is estimated against at most `n_ref` randomly chosen reference normals, so the cost
+    is O(N * n_ref); a sample always counts itself, so the density is never zero.
+    """
+    n = np.asarray(normals, dtype=np.float64)
+    if n.shape[0] == 0:
+        return np.zeros(0)
+    kappa = 1.0 / bandwidth ** 2
+    ref = n
+    if n.shape[0] > n_ref:
+        ref = n[np.random.default_rng(seed).choice(n.shape[0], n_ref, replace=False)]
+    dens = np.empty(n.shape[0])
+    for s in range(0, n.shape[0], 4096):
+        dens[s:s + 4096] = np.exp(kappa * (np.clip(n[s:s + 4096] @ ref.T, -1.0, 1.0) - 1.0)).sum(axis=1)
+    w = 1.0 / np.maximum(dens, 1e-300)
+    return w * (len(w) / w.sum())
+
+
+def regularized_lstsq(design: np.ndarray, rhs: np.ndarray, lam: float,
+                      prior: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """argmin_x ||design x - rhs||^2 + lam ||x - prior||^2 via the SVD of `design`.
+
+    design (n, K), rhs (n,) or (n, C), prior like the solution (K,) or (K, C) or None (= 0).
+    Returns (x, singular values). Directions with zero singular value take the prior's value
+    (the pseudo-inverse when lam = 0), so the result is finite for any finite input.
+    """
+    a = np.asarray(design, dtype=np.float64)
+    b = np.asarray(rhs, dtype=np.float64)
+    k = a.shape[1]
+    x0 = np.zeros((k,) + b.shape[1:]) if prior is None else np.asarray(prior, dtype=np.float64)
+    if a.shape[0] == 0:
+        return x0.copy(), np.zeros(0)
+    u, s, vt = np.linalg.svd(a, full_matrices=False)
+    tiny = (s.max() if s.size else 0.0) * max(a.shape) * np.finfo(np.float64).eps
+    denom = s * s + lam
+    filt = np.divide(s, denom, out=np.zeros_like(s), where=(s > tiny) & (denom > 0))
+    r = b - a @ x0
+    x = x0 + vt.T @ (filt.reshape((-1,) + (1,) * (b.ndim - 1)) * (u.T @ r))
+    return x, s
+
+
+def _usable(radiance, transfer, normals, visible, mask, cfg) -> tuple[np.ndarray, list[str]]:
+    """Boolean mask of samples fit to enter the solve, with notes on what was dropped and why."""
+    notes: list[str] = []
+    keep = np.ones(radiance.shape[0], dtype=bool) if mask is None else np.asarray(mask, dtype=bool).copy()
+    finite = (np.isfinite(radiance).all(axis=1) & np.isfinite(transfer).all(axis=1)
+              & np.isfinite(normals).all(axis=1) & np.isfinite(visible))
+    finite &= np.linalg.norm(np.where(np.isfinite(normals), normals, 0.0), axis=1) > 1e-6
+    rad = np.where(np.isfinite(radiance), radiance, 0.0)
+    peak = rad.max(axis=1) if rad.shape[0] else np.zeros(0)
+    tests = [("non-finite or zero-normal", finite),
+             ("occluded (visible < min_visible)", np.where(np.isfinite(visible), visible, -1.0) >= cfg.min_visible),
+             ("black", peak > cfg.black_level)]
+    if cfg.saturation_level is not None:
+        tests.append(("saturated", peak < cfg.saturation_level))
+    for name, ok in tests:
+        dropped = int((keep & ~ok).sum())
+        if dropped:
+            notes.append(f"dropped {dropped} {name} samples")
+        keep &= ok
+    return keep, notes
+
+
+def solve_lighting(radiance: np.ndarray, transfer: np.ndarray, normals: np.ndarray, visible: np.ndarray,
+                   cfg: SolverConfig | None = None, prior: np.ndarray | None = None,
+                   mask: np.ndarray | None = None) -> tuple[Lighting, SolveDiagnostics]:
+    """Solve SH lighting F (3, cfg.bands^2) from per-sample radiance (N, 3) and transfer (N, B*B).
+
+    normals (N, 3) world and visible (N,) unoccluded fraction feed the sample weights and the
+    occlusion filter; `mask` (N,) optionally restricts the samples; `prior` (3, B'*B') is a previous
+    lighting to regularise toward (instead of toward zero) and to fall back on. Shapes that do not
+    match raise ValueError; data problems never raise: they give a finite, weak result with notes.
+    """
+    cfg = cfg or SolverConfig()
+    radiance = np.asarray(radiance, dtype=np.float64).reshape(-1, 3)
+    transfer = np.asarray(transfer, dtype=np.float64)
+    normals = np.asarray(normals, dtype=np.float64).reshape(-1, 3)
+    visible = np.asarray(visible, dtype=np.float64).reshape(-1)
+    k = cfg.bands * cfg.bands
+    n_all = radiance.shape[0]
+    if transfer.ndim != 2 or transfer.shape[1] < k:
+        raise ValueError(f"transfer must be (N, >= {k}) for {cfg.bands} bands, got {transfer.shape}")
+    if not (transfer.shape[0] == normals.shape[0] == visible.shape[0] == n_all):
+        raise ValueError(f"sample counts differ: radiance {n_all}, transfer {transfer.shape[0]}, "
+                         f"normals {normals.shape[0]}, visible {visible.shape[0]}")
+    if mask is not None and np.shape(mask) != (n_all,):
+        raise ValueError(f"mask shape {np.shape(mask)} does not match {n_all} samples")
+    transfer = transfer[:, :k]
+
+    notes: list[str] = []
+    if prior is not None:
+        prior = sh.truncate(np.asarray(prior, dtype=np.float64), cfg.bands)
+        if prior.shape[0] != 3 or not np.isfinite(prior).all():
+            notes.append("prior ignored (not a finite 3-channel SH)")
+            prior = None
+    fallback = prior if prior is not None else np.zeros((3, k))
+
+    keep, drop_notes = _usable(radiance, transfer, normals, visible, mask, cfg)
+    notes += drop_notes
+    idx = np.flatnonzero(keep)
+    if cfg.max_samples is not None and idx.size > cfg.max_samples:
+        idx = np.sort(np.random.default_rng(cfg.seed).choice(idx, cfg.max_samples, replace=False))
+    n = idx.size
+    if n == 0:
+        notes.append("no usable samples: returning the " + ("prior" if prior is not None else "zero lighting"))
+        return Lighting(fallback.copy()), SolveDiagnostics(n_samples=0, weak=True, notes=notes)
+
+    a, obs, nrm = transfer[idx], radiance[idx], normals[idx]
+    nrm = nrm / np.linalg.norm(nrm, axis=1, keepdims=True)
+    if cfg.weighting == "bins":
+        w = bin_weights(nrm, cfg.grid_bins)
+    elif cfg.weighting == "density":
+        w = density_weights(nrm, cfg.density_bandwidth, cfg.seed)
+    else:
+        w = np.ones(n)
+    sw = np.sqrt(w)[:, None]
+
+    if cfg.mode == "white":
+        rhs = obs @ sh.LUMINANCE
+        mean_rgb = (w[:, None] * obs).sum(axis=0) / w.sum()
+        chroma = mean_rgb / max(float(sh.LUMINANCE @ mean_rgb), 1e-12)
+        prior_x = None if prior is None else sh.luminance(prior)
+    else:
+        rhs = obs
+        prior_x = None if prior is None else prior.T
+
+    aw = sw * a
+    s = np.linalg.svd(aw, compute_uv=False)
+    s_max = float(s[0]) if s.size else 0.0
+    rank = int((s > cfg.rank_rtol * s_max).sum()) if s_max > 0 else 0
+    cond = float(s_max / s[-1]) if s.size == k and s[-1] > 0 else float("inf")
+
+    too_few = n < cfg.min_samples_factor * k
+    if too_few:
+        notes.append(f"only {n} usable samples for {k} unknowns")
+    if rank < k:
+        notes.append(f"rank deficient: effective rank {rank} of {k}")
+    elif cond > cfg.max_condition:
+        notes.append(f"ill-conditioned: condition number {cond:.3g}")
+
+    if prior is None and k > 1 and (n < k or rank < k):
+        # Not enough information for the higher bands and nothing to regularise toward: claim no
+        # direction, fit the ambient (band 0) term only.
+        notes.append("band-0-only fallback")
+        solve_cols, prior_x = 1, None
+    else:
+        solve_cols = k
+    design = aw[:, :solve_cols]
+    lam = cfg.regularization * float((design * design).sum()) / solve_cols
+    x, _ = regularized_lstsq(design, sw * rhs if rhs.ndim == 2 else sw[:, 0] * rhs, lam, prior_x)
+
+    f = np.zeros((3, k))
+    if cfg.mode == "white":
+        f[:, :solve_cols] = chroma[:, None] * x[None, :]
+    else:
+        f[:, :solve_cols] = x.T
+    if not np.isfinite(f).all():  # only reachable with overflowing inputs
+        notes.append("solution overflowed: returning the " + ("prior" if prior is not None else "zero lighting"))
+        f = fallback.copy()
+
+    resid = a @ f.T - obs
+    mean_obs = float(np.abs(obs).mean())
+    with np.errstate(over="ignore", invalid="ignore"):
+        rms = float(np.sqrt(np.mean(resid * resid)) / mean_obs) if mean_obs > 0 else 0.0
+    diag = SolveDiagnostics(n_samples=n, condition_number=cond, effective_rank=rank,
+                            residual_rms=float(np.nan_to_num(rms, nan=0.0, posinf=np.finfo(np.float64).max)),
+                            weak=bool(too_few or rank < k or cond > cfg.max_condition or solve_cols < k),
+                            notes=notes)
+    return Lighting(f), diag

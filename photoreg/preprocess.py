@@ -1,0 +1,58 @@
+"""Per-frame preprocessing: linear colour, saturation/black masks, depth validity, optional denoising."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from .config import LightingConfig, ReconstructionConfig
+from .io.images import srgb_to_linear
+from .types import Frame
+
+
+@dataclass
+class Prepared:
+    """A frame ready for fusion and sampling."""
+
+    linear: np.ndarray      # HxWx3 float32 linear radiance (camera units)
+    depth: np.ndarray       # HxW float32 metres, 0 where invalid or out of range
+    usable: np.ndarray      # HxW bool: colour neither saturated nor black, depth valid
+    saturated_fraction: float
+    black_fraction: float
+    valid_depth_fraction: float
+
+
+def _denoise_luminance(linear: np.ndarray, method: str) -> np.ndarray:
+    """Edge-preserving denoising of luminance only; chromaticity is kept."""
+    lum = linear @ np.array([0.2126, 0.7152, 0.0722], dtype=np.float32)
+    if method == "tvl1":
+        u8 = np.clip(lum * 255.0, 0, 255).astype(np.uint8)
+        out = np.zeros_like(u8)
+        cv2.denoise_TVL1([u8], out, 1.0, 15)
+        den = out.astype(np.float32) / 255.0
+    elif method == "guided":
+        den = cv2.ximgproc.guidedFilter(lum, lum, 2, 1e-3)
+    else:
+        return linear
+    ratio = np.where(lum > 1e-6, den / np.maximum(lum, 1e-6), 1.0)
+    return (linear * ratio[..., None]).astype(np.float32)
+
+
+def prepare(frame: Frame, light: LightingConfig, recon: ReconstructionConfig) -> Prepared:
+    """Linearise colour, mask saturated/black pixels and invalid depth (NaN, inf, out of range)."""
+    if frame.color.shape[:2] != frame.depth.shape[:2]:
+        raise ValueError(f"frame {frame.index} ({frame.source}): colour {frame.color.shape[:2]} and depth "
+                         f"{frame.depth.shape[:2]} sizes differ")
+    if frame.color.shape[:2] != (frame.intrinsics.height, frame.intrinsics.width):
+        raise ValueError(f"frame {frame.index} ({frame.source}): size {frame.color.shape[1]}x{frame.color.shape[0]} "
+                         f"differs from the intrinsics {frame.intrinsics.width}x{frame.intrinsics.height}")
+    saturated = frame.color.max(axis=2) >= light.saturation_level
+    black = frame.color.max(axis=2) <= light.black_level
+    d = np.nan_to_num(frame.depth.astype(np.float32), nan=0.0, posinf=0.0, neginf=0.0)
+    valid = (d >= recon.depth_min) & (d <= recon.depth_max)
+    d = np.where(valid, d, 0.0).astype(np.float32)
+    linear = _denoise_luminance(srgb_to_linear(frame.color), light.denoise)
+    n = float(d.size)
+    return Prepared(linear, d, valid & ~saturated & ~black, float(saturated.sum() / n), float(black.sum() / n),
+                    float(valid.sum() / n))

@@ -1,0 +1,162 @@
+"""`photoreg run` / `photoreg demo`: a recording or session file in, per-frame lighting and pictures out."""
+from __future__ import annotations
+
+import json
+import os
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from .config import Session, load_session, parse_frames, validate
+from .io.atomic import write_json
+from .io.images import linear_to_srgb, write_exr, write_png_rgb
+from .lighting.visualize import latlong, lit_sphere, tonemap
+from .types import FrameResult
+
+DEMO_SESSION = Path(__file__).resolve().parents[1] / "data" / "demo" / "session.toml"
+
+
+def session_from_args(args) -> Session:
+    """Session from a .toml file or a bare recording folder, with command-line overrides applied."""
+    src = Path(args.input)
+    if src.suffix == ".toml":
+        s = load_session(src)
+    else:
+        if not src.exists():
+            raise FileNotFoundError(f"{src}: no such recording folder or session file")
+        s = Session()
+        s.recording.path = str(src.resolve())
+        s.output.dir = str(Path("out") / src.name)
+    if args.out:
+        s.output.dir = args.out
+    if args.frames:
+        s.frames = args.frames
+    if args.device:
+        s.device = args.device
+    if args.no_poses:
+        s.recording.use_poses = False
+    for opt, section, key in (("stride", "lighting", "stride"), ("rays", "lighting", "rays"),
+                              ("bands", "lighting", "bands"), ("ray_length", "lighting", "ray_length"),
+                              ("voxel_size", "reconstruction", "voxel_size")):
+        v = getattr(args, opt)
+        if v is not None:
+            setattr(getattr(s, section), key, v)
+    validate(s)
+    return s
+
+
+class Progress:
+    """One status line on stderr: frames done, frames/s, time left."""
+
+    def __init__(self, total: int, quiet: bool):
+        self.total, self.quiet, self.t0, self.done = total, quiet or not total, time.perf_counter(), 0
+
+    def step(self, note: str = "") -> None:
+        self.done += 1
+        if self.quiet:
+            return
+        el = time.perf_counter() - self.t0
+        fps = self.done / el if el > 0 else 0.0
+        left = (self.total - self.done) / fps if fps > 0 else 0.0
+        bar = "#" * int(30 * self.done / self.total)
+        print(f"\r[{bar:<30}] {self.done}/{self.total}  {fps:5.2f} frames/s  {left:5.0f} s left {note[:40]:<40}",
+              end="", file=sys.stderr, flush=True)
+
+    def close(self) -> None:
+        if not self.quiet:
+            print(file=sys.stderr)
+
+
+def result_record(r: FrameResult) -> dict:
+    """One lighting.jsonl object (DESIGN.md 'Files')."""
+    return {"frame": r.index, "timestamp": r.timestamp, "bands": r.lighting.bands,
+            "sh": np.round(r.lighting.sh, 7).tolist(), "dominant_direction": np.round(r.dominant_direction, 6).tolist(),
+            "diagnostics": r.diagnostics.to_json(), "timings_ms": {k: round(v, 3) for k, v in r.timings_ms.items()}}
+
+
+def write_pictures(out: Path, r: FrameResult, pose) -> None:
+    """Lat-long estimate (EXR linear + PNG tonemapped) and a lit sphere seen from the camera."""
+    name = f"{r.index:06d}"
+    env = latlong(r.lighting.sh)
+    write_exr(out / "envmap" / f"{name}.exr", env)
+    write_png_rgb(out / "envmap" / f"{name}.png", linear_to_srgb(tonemap(env)))
+    sphere = lit_sphere(r.lighting.sh, pose if pose is not None else np.eye(4))
+    write_png_rgb(out / "sphere" / f"{name}.png", linear_to_srgb(tonemap(sphere)))
+
+
+def run_session(s: Session, quiet: bool = False) -> dict:
+    """Process a session; returns the summary (also written to summary.json)."""
+    from .io.recording import iter_frames, open_recording
+    from .pipeline import Pipeline
+
+    rec = open_recording(s.recording.path, fmt=s.recording.format, undistort=s.recording.undistort)
+    indices = parse_frames(s.frames, len(rec))
+    if not indices:
+        raise ValueError(f"{s.recording.path}: no frames selected (recording has {len(rec)}, --frames {s.frames!r})")
+    if s.recording.use_poses and not rec.has_poses:
+        print(f"photoreg: {s.recording.path} has no poses: tracking the camera instead", file=sys.stderr)
+        s.recording.use_poses = False
+    out = Path(s.output.dir)
+    out.mkdir(parents=True, exist_ok=True)
+    pipe = Pipeline(s, rec.intrinsics)
+    skipped: list[dict] = []
+    results: list[FrameResult] = []
+    progress = Progress(len(indices), quiet)
+    partial = out / "lighting.jsonl.partial"
+    t0 = time.perf_counter()
+    with open(partial, "w") as f:
+        for frame in iter_frames(rec, indices, on_error=lambda i, msg: skipped.append({"frame": i, "error": msg})):
+            r = pipe.process(frame)
+            results.append(r)
+            f.write(json.dumps(result_record(r)) + "\n")
+            f.flush()
+            k = s.output.pictures_every
+            if k and (len(results) - 1) % k == 0:
+                write_pictures(out, r, frame.pose)
+            progress.step(f"frame {frame.index}" + (" (weak)" if r.diagnostics.weak else ""))
+    progress.close()
+    os.replace(partial, out / "lighting.jsonl")
+    wall = time.perf_counter() - t0
+    for sk in skipped:
+        print(f"photoreg: skipped frame {sk['frame']}: {sk['error']}", file=sys.stderr)
+    stages = sorted({k for r in results for k in r.timings_ms})
+    summary = {
+        "recording": s.recording.path, "device": pipe.device, "frames_processed": len(results),
+        "frames_skipped": skipped, "wall_s": round(wall, 3),
+        "frames_per_s": round(len(results) / wall, 3) if wall > 0 else None,
+        "weak_frames": [r.index for r in results if r.diagnostics.weak],
+        "timings_ms_mean": {k: round(float(np.mean([r.timings_ms.get(k, 0.0) for r in results])), 3) for k in stages},
+        "settings": {"lighting": vars(s.lighting), "reconstruction": vars(s.reconstruction),
+                     "use_poses": s.recording.use_poses},
+    }
+    if pipe.tracker is not None:
+        summary["tracking"] = pipe.tracker.report()
+    write_json(out / "summary.json", summary)
+    return summary
+
+
+def print_summary(summary: dict, out: str) -> None:
+    t = summary["timings_ms_mean"]
+    stages = "  ".join(f"{k} {v:.1f}" for k, v in t.items() if k != "total")
+    print(f"{summary['frames_processed']} frames on {summary['device']} at {summary['frames_per_s']} frames/s; "
+          f"{len(summary['weak_frames'])} weak, {len(summary['frames_skipped'])} skipped")
+    print(f"mean ms per stage: {stages}  (total {t.get('total', 0):.1f})")
+    print(f"outputs in {out}: lighting.jsonl, summary.json, envmap/, sphere/")
+
+
+def run_command(args) -> int:
+    s = session_from_args(args)
+    summary = run_session(s, quiet=args.quiet)
+    print_summary(summary, s.output.dir)
+    return 0
+
+
+def demo_command(args) -> int:
+    if not DEMO_SESSION.is_file():
+        raise FileNotFoundError(f"{DEMO_SESSION}: the embedded demo is missing from this checkout")
+    args.input = str(DEMO_SESSION)
+    if not args.out:
+        args.out = "out/demo"
+    return run_command(args)
