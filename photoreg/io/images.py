@@ -25,10 +25,26 @@ def linear_to_srgb(img: np.ndarray) -> np.ndarray:
 
 def read_rgb(path: str | os.PathLike) -> np.ndarray:
     """Any colour image OpenCV reads -> HxWx3 uint8 RGB; clear error naming the file."""
+    if not Path(path).is_file():
+        raise FileNotFoundError(f"{path}: no such file")
     img = cv2.imread(str(path), cv2.IMREAD_COLOR)
     if img is None:
         raise ValueError(f"{path}: not a readable colour image")
     return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
+
+
+def read_depth_raw(path: str | os.PathLike) -> np.ndarray:
+    """Single-channel 16-bit or float depth image in its stored units (not metres); clear error naming the file."""
+    if not Path(path).is_file():
+        raise FileNotFoundError(f"{path}: no such file")
+    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if img is None:
+        raise ValueError(f"{path}: not a readable depth image")
+    if img.ndim != 2:
+        raise ValueError(f"{path}: depth image has {img.shape[2]} channels, expected 1")
+    if img.dtype != np.uint16 and not np.issubdtype(img.dtype, np.floating):
+        raise ValueError(f"{path}: depth image is {img.dtype}, expected 16-bit or float")
+    return img
 
 
 def write_png_rgb(path: str | os.PathLike, rgb8: np.ndarray) -> None:

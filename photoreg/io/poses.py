@@ -51,7 +51,7 @@ def read_tum_trajectory(path) -> tuple[np.ndarray, np.ndarray]:
     return np.asarray(ts), np.stack(poses)
 
 
-def interpolate_poses(ts: np.ndarray, poses: np.ndarray, query: np.ndarray, max_gap: float = 0.1) -> list:
+def interpolate_poses(ts: np.ndarray, poses: np.ndarray, query: np.ndarray, max_gap: float = 0.25) -> list:
     """Poses at query times (slerp rotation, linear translation); None where a query is outside
     the trajectory or its neighbouring samples are more than `max_gap` seconds apart."""
     out: list = []
@@ -66,7 +66,7 @@ def interpolate_poses(ts: np.ndarray, poses: np.ndarray, query: np.ndarray, max_
             continue
         a = (t - ts[j - 1]) / (ts[j] - ts[j - 1])
         T = np.eye(4)
-        T[:3, :3] = slerp([t]).as_matrix()[0]
+        T[:3, :3] = slerp([min(max(t, ts[0]), ts[-1])]).as_matrix()[0]  # within the 1e-9 tolerance above
         T[:3, 3] = (1 - a) * poses[j - 1, :3, 3] + a * poses[j, :3, 3]
         out.append(T)
     return out

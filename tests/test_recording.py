@@ -1,0 +1,409 @@
+"""Recording readers: the shared TUM and ICL-NUIM recordings, native and 7-Scenes folders written here,
+and every kind of bad input giving an error that names the file (and line)."""
+from __future__ import annotations
+
+import json
+import re
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from photoreg.cli import main
+from photoreg.io.poses import check_pose, format_tum_line, interpolate_poses, read_tum_trajectory
+from photoreg.io.recording import iter_frames, open_recording
+from photoreg.io.redwood import numbered_images
+from photoreg.io.tum import associate, read_timestamped
+
+W, H = 8, 6
+DEPTH_SCALE = 5000.0
+
+
+@pytest.fixture(scope="module")
+def tum_path(data_dir) -> Path:
+    return data_dir / "recordings" / "tum_fr1_rpy"
+
+
+@pytest.fixture(scope="module")
+def icl_path(data_dir) -> Path:
+    return data_dir / "recordings" / "iclnuim_livingroom1"
+
+
+def gt_pose(t: float) -> np.ndarray:
+    """A smooth made-up trajectory: constant-rate turn about a fixed axis, linear translation
+    (what slerp plus linear interpolation reproduce exactly)."""
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_rotvec((t - 100.0) * np.array([0.3, 0.5, 0.1])).as_matrix()
+    T[:3, 3] = [t - 100.0, 0.5, 2.0 * (t - 100.0)]
+    return T
+
+
+def write_native(root: Path, n: int = 3) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """A tiny native recording (TUM layout + intrinsics.json + groundtruth.txt); returns the images written."""
+    rng = np.random.default_rng(0)
+    (root / "rgb").mkdir(parents=True)
+    (root / "depth").mkdir()
+    colors, raws = [], []
+    rgb_lines, depth_lines = ["# colour images", "# timestamp filename"], ["# depth maps", "# timestamp filename"]
+    for i in range(n):
+        t = 100.0 + i / 30
+        color = rng.integers(0, 256, (H, W, 3), dtype=np.uint8)
+        raw = rng.integers(1, 30000, (H, W)).astype(np.uint16)
+        raw[0, 0] = 0
+        cv2.imwrite(str(root / f"rgb/{i:06d}.png"), cv2.cvtColor(color, cv2.COLOR_RGB2BGR))
+        cv2.imwrite(str(root / f"depth/{i:06d}.png"), raw)
+        rgb_lines.append(f"{t:.6f} rgb/{i:06d}.png")
+        depth_lines.append(f"{t + 0.005:.6f} depth/{i:06d}.png")
+        colors.append(color)
+        raws.append(raw)
+    (root / "rgb.txt").write_text("\n".join(rgb_lines) + "\n")
+    (root / "depth.txt").write_text("\n".join(depth_lines) + "\n")
+    gt_times = np.arange(99.9, 100.0 + n / 30 + 0.1, 0.01)
+    (root / "groundtruth.txt").write_text("# timestamp tx ty tz qx qy qz qw\n"
+                                          + "".join(format_tum_line(t, gt_pose(t)) + "\n" for t in gt_times))
+    (root / "intrinsics.json").write_text(json.dumps(
+        {"width": W, "height": H, "fx": 10.0, "fy": 11.0, "cx": 3.5, "cy": 2.5, "depth_scale": DEPTH_SCALE}))
+    return colors, raws
+
+
+def write_7scenes(root: Path, n: int = 2) -> None:
+    """A tiny 7-Scenes sequence at the default 640x480 size, one invalid (65535) depth pixel per frame."""
+    root.mkdir(parents=True, exist_ok=True)
+    for i in range(n):
+        cv2.imwrite(str(root / f"frame-{i:06d}.color.png"), np.full((480, 640, 3), 40 * i, np.uint8))
+        raw = np.full((480, 640), 1500, np.uint16)
+        raw[0, 0] = 65535
+        raw[0, 1] = 0
+        cv2.imwrite(str(root / f"frame-{i:06d}.depth.png"), raw)
+        T = gt_pose(100.0 + i)
+        (root / f"frame-{i:06d}.pose.txt").write_text("".join("\t".join(f"{x:.7e}" for x in row) + "\t\n" for row in T))
+
+
+def line_of(path: Path, text: str) -> int:
+    """1-based number of the first line of `path` containing `text`."""
+    return next(n for n, line in enumerate(path.read_text().splitlines(), 1) if text in line)
+
+
+# --- the shared recordings ---------------------------------------------------------------------------
+
+def test_tum_recording(tum_path):
+    rec = open_recording(tum_path)
+    assert rec.format == "tum" and len(rec) == 100
+    k = rec.intrinsics
+    assert (k.width, k.height, k.depth_scale) == (640, 480, 5000.0)
+    assert (k.fx, k.fy, k.cx, k.cy) == pytest.approx((517.306408, 516.469215, 318.643040, 255.313989))
+    np.testing.assert_allclose(rec.distortion, [0.262383, -0.953104, -0.005358, 0.002628, 1.163314])
+    assert np.all(np.diff(rec.timestamps) > 0) and rec.timestamps[0] == pytest.approx(1305031244.261676)
+    assert rec.frame_files(0)[0].name == "1305031244.261676.png"
+    assert rec.frame_files(0)[1].name == "1305031244.247347.png"
+    valid_fraction = []
+    for frame in iter_frames(rec, [0, 33, 66, 99]):
+        assert frame.color.shape == (480, 640, 3) and frame.color.dtype == np.uint8
+        assert frame.depth.shape == (480, 640) and frame.depth.dtype == np.float32
+        d = frame.depth[frame.depth > 0]
+        assert 0.4 < d.min() and d.max() < 5.5
+        valid_fraction.append(d.size / frame.depth.size)
+    assert 0.66 < np.mean(valid_fraction) < 0.86
+
+
+def test_tum_association_matches_associations_txt(tum_path):
+    rgb_times, rgb_rows = read_timestamped(tum_path / "rgb.txt", 2)
+    depth_times, depth_rows = read_timestamped(tum_path / "depth.txt", 2)
+    _, rows = read_timestamped(tum_path / "associations.txt", 4)
+    pairs = associate(rgb_times, depth_times)
+    assert [(rgb_rows[i][1], depth_rows[j][1]) for i, j in pairs] == [(r[1], r[3]) for r in rows]
+
+
+def test_tum_poses_interpolated_near_groundtruth(tum_path):
+    rec = open_recording(tum_path)
+    gt_times, gt_poses = read_tum_trajectory(tum_path / "groundtruth.txt")
+    missing = [i for i, T in enumerate(rec.poses) if T is None]
+    # the motion-capture trajectory has a 0.13 s gap: bridged (limit 0.25 s), every frame gets a pose
+    assert missing == []
+    for t, T in zip(rec.timestamps, rec.poses):
+        if T is None:
+            continue
+        check_pose(T, "interpolated")
+        j = np.argmin(np.abs(gt_times - t))
+        if abs(gt_times[j] - t) >= 0.03:  # inside the 0.13 s mocap gap: interpolated, no sample to compare
+            continue
+        assert np.linalg.norm(T[:3, 3] - gt_poses[j][:3, 3]) < 0.005
+        angle = Rotation.from_matrix(T[:3, :3].T @ gt_poses[j][:3, :3]).magnitude()
+        assert np.degrees(angle) < 1.5
+    assert rec.frame(0).pose is not None and rec.frame(15).pose is not None
+
+
+def test_interpolation_refuses_long_gaps():
+    ts = np.array([0.0, 0.1, 0.5])
+    poses = np.stack([np.eye(4)] * 3)
+    out = interpolate_poses(ts, poses, np.array([0.05, 0.3, 0.6]))
+    assert out[0] is not None and out[1] is None and out[2] is None
+
+
+def test_tum_undistort_matches_cv2(tum_path):
+    plain = open_recording(tum_path).frame(5)
+    rec = open_recording(tum_path, undistort=True)
+    frame = rec.frame(5)
+    reference = cv2.undistort(plain.color, rec.intrinsics.K, rec.distortion)
+    assert np.mean(np.abs(reference.astype(int) - frame.color) > 2) < 1e-3
+    assert frame.depth.shape == plain.depth.shape
+    # nearest-neighbour: every undistorted depth value is one of the measured ones
+    assert np.isin(np.unique(frame.depth), np.unique(plain.depth)).all()
+    assert frame.depth[0, 0] == 0  # the corner maps outside the distorted image
+
+
+def test_icl_recording(icl_path):
+    rec = open_recording(icl_path)
+    assert rec.format == "redwood" and len(rec) == 211
+    k = rec.intrinsics
+    assert (k.width, k.height, k.fx, k.fy, k.cx, k.cy, k.depth_scale) == (640, 480, 525, 525, 319.5, 239.5, 1000)
+    np.testing.assert_allclose(rec.timestamps[:3], [0, 1 / 30, 2 / 30])
+    assert [p.name for p in rec.frame_files(210)] == ["00210.jpg", "00210.png"]
+    assert sum(T is not None for T in rec.poses) == 211
+    for T in rec.poses:
+        check_pose(T, "icl")
+    np.testing.assert_allclose(rec.poses[0], np.eye(4), atol=1e-8)
+    frame = rec.frame(100)
+    assert frame.color.shape == (480, 640, 3) and frame.depth.dtype == np.float32
+    d = frame.depth[frame.depth > 0]
+    assert 0.3 < d.min() and d.max() < 6.0 and d.size > 0.9 * frame.depth.size
+    np.testing.assert_allclose(frame.pose, rec.poses[100])
+
+
+def test_info_command(tum_path, icl_path, capsys):
+    assert main(["info", str(tum_path)]) == 0
+    out = capsys.readouterr().out
+    for text in ("format:      tum", "frames:      100", "image size:  640x480", "fx=517.306", "depth scale: 5000",
+                 "poses:       yes (100/100 frames)", "time span:   3.736 s", "26.50 frames/s", "% valid"):
+        assert text in out
+    depth = re.search(r"min ([\d.]+) / median ([\d.]+) / max ([\d.]+) m, ([\d.]+)% valid", out)
+    assert 0.4 < float(depth[1]) < float(depth[2]) < float(depth[3]) < 5.5 and 66 < float(depth[4]) < 86
+
+    assert main(["info", str(icl_path)]) == 0
+    out = capsys.readouterr().out
+    for text in ("format:      redwood", "frames:      211", "fx=525 fy=525 cx=319.5 cy=239.5", "depth scale: 1000",
+                 "poses:       yes (211/211 frames)", "30.00 frames/s"):
+        assert text in out
+
+
+def test_info_command_error(tmp_path, capsys):
+    assert main(["info", str(tmp_path)]) == 2
+    assert "not a recognised recording" in capsys.readouterr().err
+
+
+# --- folders written here ------------------------------------------------------------------------------
+
+def test_native_round_trip(tmp_path):
+    colors, raws = write_native(tmp_path)
+    rec = open_recording(tmp_path)
+    assert rec.format == "native" and len(rec) == 3 and rec.has_poses and rec.distortion is None
+    assert rec.intrinsics.to_json() == {"width": W, "height": H, "fx": 10.0, "fy": 11.0, "cx": 3.5, "cy": 2.5,
+                                        "depth_scale": DEPTH_SCALE}
+    frames = list(rec)
+    for i, frame in enumerate(frames):
+        assert frame.index == i and frame.timestamp == pytest.approx(100.0 + i / 30)
+        np.testing.assert_array_equal(frame.color, colors[i])
+        np.testing.assert_allclose(frame.depth, raws[i] / DEPTH_SCALE, rtol=1e-6)
+        assert frame.depth[0, 0] == 0
+        np.testing.assert_allclose(frame.pose, gt_pose(frame.timestamp), atol=1e-6)
+        assert frame.source == str(tmp_path / f"rgb/{i:06d}.png")
+
+
+def test_native_association_without_match(tmp_path):
+    write_native(tmp_path, n=4)
+    lines = (tmp_path / "depth.txt").read_text().splitlines()
+    (tmp_path / "depth.txt").write_text("\n".join(lines[:3] + lines[4:]) + "\n")  # frame 1 loses its depth
+    rec = open_recording(tmp_path)
+    assert [p.name for p in rec.color_files] == ["000000.png", "000002.png", "000003.png"]
+    assert [p.name for p in rec.depth_files] == ["000000.png", "000002.png", "000003.png"]
+    assert any("1 of 4 colour frames" in note for note in rec.notes)
+
+
+def test_7scenes(tmp_path):
+    write_7scenes(tmp_path, n=3)
+    (tmp_path / "README.txt").write_text("not a frame")
+    rec = open_recording(tmp_path)
+    assert rec.format == "7scenes" and len(rec) == 3
+    k = rec.intrinsics
+    assert (k.width, k.height, k.fx, k.fy, k.cx, k.cy, k.depth_scale) == (640, 480, 585, 585, 320, 240, 1000)
+    frame = rec.frame(2)
+    assert frame.color[0, 0].tolist() == [80, 80, 80]
+    assert frame.depth[0, 0] == 0 and frame.depth[0, 1] == 0 and frame.depth[1, 1] == pytest.approx(1.5)
+    np.testing.assert_allclose(frame.pose, gt_pose(102.0), atol=1e-6)
+    assert frame.timestamp == pytest.approx(2 / 30)
+
+
+def test_tum_defaults_from_folder_name(tmp_path):
+    root = tmp_path / "rgbd_dataset_freiburg2_desk"
+    write_native(root)
+    (root / "intrinsics.json").unlink()
+    rec = open_recording(root)
+    assert rec.format == "tum"
+    assert (rec.intrinsics.fx, rec.intrinsics.cy, rec.intrinsics.depth_scale) == (520.9, 249.7, 5000.0)
+    assert rec.distortion[0] == pytest.approx(0.2312)
+
+
+# --- bad input ------------------------------------------------------------------------------------------
+
+def test_iter_frames_reports_corrupt_frame(tmp_path):
+    write_native(tmp_path)
+    bad = tmp_path / "rgb/000001.png"
+    bad.write_bytes(b"not a png")
+    rec = open_recording(tmp_path)
+    errors = []
+    frames = list(iter_frames(rec, on_error=lambda i, msg: errors.append((i, msg))))
+    assert [f.index for f in frames] == [0, 2]
+    assert len(errors) == 1 and errors[0][0] == 1 and str(bad) in errors[0][1]
+    with pytest.raises(ValueError, match=re.escape(str(bad))):
+        list(iter_frames(rec))
+
+
+def _drop_line(path: Path, text: str) -> None:
+    path.write_text("".join(line for line in path.read_text().splitlines(True) if text not in line))
+
+
+def _replace(path: Path, old: str, new: str) -> None:
+    assert old in path.read_text()
+    path.write_text(path.read_text().replace(old, new, 1))
+
+
+def _open_error(root: Path) -> Exception:
+    with pytest.raises((ValueError, FileNotFoundError)) as e:
+        open_recording(root)
+    return e.value
+
+
+def _frame_error(root: Path, i: int = 1) -> Exception:
+    rec = open_recording(root)
+    with pytest.raises((ValueError, FileNotFoundError)) as e:
+        rec.frame(i)
+    return e.value
+
+
+@pytest.mark.parametrize("case", [
+    "missing depth.txt", "unsorted rgb.txt", "malformed rgb.txt", "bad timestamp", "non-finite pose",
+    "non-unit quaternion", "broken intrinsics.json", "intrinsics.json missing key", "intrinsics.txt unknown key",
+])
+def test_index_errors_name_file_and_line(tmp_path, case):
+    write_native(tmp_path)
+    rgb, gt, js = tmp_path / "rgb.txt", tmp_path / "groundtruth.txt", tmp_path / "intrinsics.json"
+    if case == "missing depth.txt":
+        (tmp_path / "depth.txt").unlink()
+        where = str(tmp_path / "depth.txt")
+    elif case == "unsorted rgb.txt":
+        _replace(rgb, "100.033333", "99.000000")
+        where = f"{rgb}:{line_of(rgb, '99.000000')}"
+    elif case == "malformed rgb.txt":
+        _replace(rgb, "rgb/000001.png", "rgb/000001.png extra")
+        where = f"{rgb}:{line_of(rgb, 'extra')}"
+    elif case == "bad timestamp":
+        _replace(rgb, "100.033333", "1OO.033333")
+        where = f"{rgb}:{line_of(rgb, '1OO')}"
+    elif case == "non-finite pose":
+        first = gt.read_text().splitlines()[5]
+        _replace(gt, first, first.split()[0] + " nan 0 0 0 0 0 1")
+        where = f"{gt}:6"
+    elif case == "non-unit quaternion":
+        first = gt.read_text().splitlines()[3]
+        _replace(gt, first, first.split()[0] + " 0 0 0 0.5 0 0 0.5")
+        where = f"{gt}:4"
+    elif case == "broken intrinsics.json":
+        js.write_text('{"width": 8,\n "height": 6,\n "fx": }')
+        where = f"{js}:3"
+    elif case == "intrinsics.json missing key":
+        js.write_text('{"width": 8, "height": 6, "fx": 10, "fy": 10, "cx": 3.5}')
+        where = f"{js}: missing cy"
+    else:
+        js.unlink()
+        txt = tmp_path / "intrinsics.txt"
+        txt.write_text("# calibration\nfx 10\nfy 11\ncx 3.5\ncy 2.5\nfocal 3\n")
+        where = f"{txt}:6"
+    assert where in str(_open_error(tmp_path))
+
+
+@pytest.mark.parametrize("case", ["missing image", "corrupt depth", "8-bit depth", "size mismatch",
+                                  "size differs from intrinsics"])
+def test_frame_errors_name_file(tmp_path, case):
+    write_native(tmp_path)
+    color, depth = tmp_path / "rgb/000001.png", tmp_path / "depth/000001.png"
+    if case == "missing image":
+        color.unlink()
+        where = color
+    elif case == "corrupt depth":
+        depth.write_bytes(b"\x89PNG garbage")
+        where = depth
+    elif case == "8-bit depth":
+        cv2.imwrite(str(depth), np.zeros((H, W), np.uint8))
+        where = depth
+    elif case == "size mismatch":
+        cv2.imwrite(str(depth), np.zeros((H + 1, W), np.uint16))
+        where = depth
+    else:
+        cv2.imwrite(str(color), np.zeros((H + 1, W, 3), np.uint8))
+        cv2.imwrite(str(depth), np.zeros((H + 1, W), np.uint16))
+        where = color
+    assert str(where) in str(_frame_error(tmp_path))
+
+
+def test_unknown_tum_sensor_asks_for_intrinsics(tmp_path):
+    root = tmp_path / "my_recording"
+    write_native(root)
+    (root / "intrinsics.json").unlink()
+    assert "intrinsics.json" in str(_open_error(root))
+
+
+def test_redwood_errors(tmp_path, icl_path):
+    root = tmp_path / "icl"
+    (root / "color").mkdir(parents=True)
+    (root / "depth").mkdir()
+    for i in range(3):
+        cv2.imwrite(str(root / f"color/{i:05d}.jpg"), np.zeros((480, 640, 3), np.uint8))
+        cv2.imwrite(str(root / f"depth/{i:05d}.png"), np.zeros((480, 640), np.uint16))
+    log = root / "trajectory.log"
+    log.write_text("".join(open(icl_path / "trajectory_open3d_estimated.log").readlines()[:15]))
+    rec = open_recording(root)
+    assert rec.format == "redwood" and len(rec) == 3 and rec.has_poses
+
+    _replace(log, "1 1 2\n0.99999139", "1 1 2\n1.99999139")  # not a rotation any more
+    assert f"{log}:7" in str(_open_error(root))
+    _replace(log, "1 1 2\n1.99999139", "x 1 2\n0.99999139")
+    assert f"{log}:6" in str(_open_error(root))
+    _replace(log, "x 1 2\n", "7 7 8\n")
+    assert f"{log}:6: frame 7 out of range" in str(_open_error(root))
+    _replace(log, "7 7 8\n", "1 1 2\n")
+
+    with pytest.raises(ValueError, match="no distortion coefficients"):
+        open_recording(root, undistort=True)
+    (root / "depth/00002.png").unlink()
+    assert "holds 3 images" in str(_open_error(root))
+
+
+def test_numbered_images_order(tmp_path):
+    for name in ["000010-000000333.jpg", "000002-000000066.jpg", "000001-000000033.jpg", "notes.txt"]:
+        (tmp_path / name).write_bytes(b"")
+    assert [p.name[:6] for p in numbered_images(tmp_path)] == ["000001", "000002", "000010"]
+    (tmp_path / "000002-000000066.png").write_bytes(b"")
+    with pytest.raises(ValueError, match="same frame number"):
+        numbered_images(tmp_path)
+
+
+def test_7scenes_errors(tmp_path):
+    write_7scenes(tmp_path)
+    pose = tmp_path / "frame-000001.pose.txt"
+    pose.write_text(pose.read_text().replace("1.0000000e+00", "inf", 1))
+    assert str(pose) in str(_open_error(tmp_path))
+    write_7scenes(tmp_path)
+    (tmp_path / "frame-000001.depth.png").unlink()
+    assert "frame-000001.depth.png" in str(_frame_error(tmp_path))
+
+
+def test_unknown_layout_and_format(tmp_path):
+    assert "not a recognised recording" in str(_open_error(tmp_path))
+    assert isinstance(_open_error(tmp_path / "absent"), FileNotFoundError)
+    write_native(tmp_path)
+    with pytest.raises(ValueError, match="unknown recording format"):
+        open_recording(tmp_path, fmt="kinect")
+    with pytest.raises(IndexError):
+        open_recording(tmp_path).frame(3)
