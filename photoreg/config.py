@@ -43,7 +43,7 @@ class LightingConfig:
     ray_offset_voxels: float = 1.5
     min_visible: float = 0.05     # drop samples with >95% of rays blocked (paper)
     weighting: str = "bins"       # bins | density | none (normal-distribution weighting)
-    regularization: float = 1e-3  # Tikhonov strength, relative to the data scale
+    regularization: float = 1e-2  # Tikhonov strength, relative to the data scale (measured best: tests/test_solver.py)
     mode: str = "rgb"             # rgb | white
     saturation_level: int = 250   # 8-bit value at or above which a pixel counts as saturated
     black_level: int = 3          # 8-bit value at or below which a pixel counts as black

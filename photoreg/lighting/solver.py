@@ -38,10 +38,12 @@ class SolverConfig:
     """Settings of the per-frame lighting solve (see the module docstring for the weightings)."""
 
     bands: int = 3
-    weighting: str = "bins"            # "bins" | "density" | "none"; default chosen by measured accuracy
+    # "bins" | "density" | "none". bins won on 32 synthetic clustered-normal cases (8-band light, 3-band solve):
+    # mean relative irradiance error 0.059 (bins) vs 0.060 (density) vs 0.094 (none), at a third of density's cost.
+    weighting: str = "bins"
     grid_bins: int = 8                 # equal-area grid: grid_bins bands in z x 2*grid_bins in azimuth
     density_bandwidth: float = 0.2     # radians, kernel width for weighting="density"
-    regularization: float = 1e-4       # Tikhonov lambda relative to trace(A^T W A) / K
+    regularization: float = 1e-2       # Tikhonov lambda relative to trace(A^T W A) / K; best of 0..3e-2 measured
     min_visible: float = 0.05          # drop samples with less than this unoccluded fraction (paper: 95% blocked)
     mode: str = "rgb"                  # "rgb": three solves; "white": one luminance solve times mean chroma
     max_samples: int | None = 20000    # random subsample of the usable samples (fixed seed), None = all
@@ -83,30 +85,37 @@ def bin_weights(normals: np.ndarray, grid_bins: int) -> np.ndarray:
 def density_weights(normals: np.ndarray, bandwidth: float, seed: int = 0, n_ref: int = 2048) -> np.ndarray:
     """Inverse kernel density of normals (von Mises-Fisher kernel, kappa = 1/bandwidth^2), mean 1.
 
-    The density is estimated against at most `n_ref` randomly chosen reference normals, so the cost
-    is O(N * n_ref); a sample always counts itself, so the density is never zero.
+    The density counts the sample itself plus its neighbours, estimated from at most `n_ref`
+    random reference normals (scaled up to all N), so it is never below 1 and the cost is O(N n_ref).
     """
     n = np.asarray(normals, dtype=np.float64)
-    if n.shape[0] == 0:
+    count = n.shape[0]
+    if count == 0:
         return np.zeros(0)
     kappa = 1.0 / bandwidth ** 2
-    ref = n
-    if n.shape[0] > n_ref:
-        ref = n[np.random.default_rng(seed).choice(n.shape[0], n_ref, replace=False)]
-    dens = np.empty(n.shape[0])
-    for s in range(0, n.shape[0], 4096):
-        dens[s:s + 4096] = np.exp(kappa * (np.clip(n[s:s + 4096] @ ref.T, -1.0, 1.0) - 1.0)).sum(axis=1)
-    w = 1.0 / np.maximum(dens, 1e-300)
-    return w * (len(w) / w.sum())
+    ref_idx = np.arange(count)
+    if count > n_ref:
+        ref_idx = np.random.default_rng(seed).choice(count, n_ref, replace=False)
+    in_ref = np.zeros(count)
+    in_ref[ref_idx] = 1.0
+    ref = n[ref_idx]
+    near = np.empty(count)
+    for s in range(0, count, 4096):
+        near[s:s + 4096] = np.exp(kappa * (np.clip(n[s:s + 4096] @ ref.T, -1.0, 1.0) - 1.0)).sum(axis=1)
+    others = np.maximum(near - in_ref, 0.0)  # drop the self-term of reference samples
+    dens = 1.0 + others * (count - 1) / np.maximum(len(ref_idx) - in_ref, 1.0)
+    w = 1.0 / dens
+    return w * (count / w.sum())
 
 
-def regularized_lstsq(design: np.ndarray, rhs: np.ndarray, lam: float,
-                      prior: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+def regularized_lstsq(design: np.ndarray, rhs: np.ndarray, lam: float, prior: np.ndarray | None = None,
+                      relative: bool = False) -> tuple[np.ndarray, np.ndarray]:
     """argmin_x ||design x - rhs||^2 + lam ||x - prior||^2 via the SVD of `design`.
 
     design (n, K), rhs (n,) or (n, C), prior like the solution (K,) or (K, C) or None (= 0).
-    Returns (x, singular values). Directions with zero singular value take the prior's value
-    (the pseudo-inverse when lam = 0), so the result is finite for any finite input.
+    relative=True takes lam in units of trace(design^T design) / K. Returns (x, singular values).
+    Directions with zero singular value keep the prior's value (the pseudo-inverse when lam = 0).
+    Design and rhs are scaled to unit maximum first, so tiny or huge data neither under- nor overflow.
     """
     a = np.asarray(design, dtype=np.float64)
     b = np.asarray(rhs, dtype=np.float64)
@@ -114,13 +123,18 @@ def regularized_lstsq(design: np.ndarray, rhs: np.ndarray, lam: float,
     x0 = np.zeros((k,) + b.shape[1:]) if prior is None else np.asarray(prior, dtype=np.float64)
     if a.shape[0] == 0:
         return x0.copy(), np.zeros(0)
-    u, s, vt = np.linalg.svd(a, full_matrices=False)
+    ca = float(np.abs(a).max()) or 1.0
+    cb = float(np.abs(b).max()) or 1.0
+    u, s, vt = np.linalg.svd(a / ca, full_matrices=False)
+    lam_s = lam * float((s * s).sum()) / k if relative else lam / (ca * ca)
     tiny = (s.max() if s.size else 0.0) * max(a.shape) * np.finfo(np.float64).eps
-    denom = s * s + lam
+    denom = s * s + lam_s
     filt = np.divide(s, denom, out=np.zeros_like(s), where=(s > tiny) & (denom > 0))
-    r = b - a @ x0
-    x = x0 + vt.T @ (filt.reshape((-1,) + (1,) * (b.ndim - 1)) * (u.T @ r))
-    return x, s
+    x0_s = x0 * (ca / cb)
+    r = b / cb - (a / ca) @ x0_s
+    x_s = x0_s + vt.T @ (filt.reshape((-1,) + (1,) * (b.ndim - 1)) * (u.T @ r))
+    with np.errstate(over="ignore"):
+        return x_s * (cb / ca), s * ca
 
 
 def _usable(radiance, transfer, normals, visible, mask, cfg) -> tuple[np.ndarray, list[str]]:
@@ -209,7 +223,8 @@ def solve_lighting(radiance: np.ndarray, transfer: np.ndarray, normals: np.ndarr
         prior_x = None if prior is None else prior.T
 
     aw = sw * a
-    s = np.linalg.svd(aw, compute_uv=False)
+    rhs_w = sw * rhs if rhs.ndim == 2 else sw[:, 0] * rhs
+    x, s = regularized_lstsq(aw, rhs_w, cfg.regularization, prior_x, relative=True)
     s_max = float(s[0]) if s.size else 0.0
     rank = int((s > cfg.rank_rtol * s_max).sum()) if s_max > 0 else 0
     cond = float(s_max / s[-1]) if s.size == k and s[-1] > 0 else float("inf")
@@ -222,16 +237,13 @@ def solve_lighting(radiance: np.ndarray, transfer: np.ndarray, normals: np.ndarr
     elif cond > cfg.max_condition:
         notes.append(f"ill-conditioned: condition number {cond:.3g}")
 
+    solve_cols = k
     if prior is None and k > 1 and (n < k or rank < k):
         # Not enough information for the higher bands and nothing to regularise toward: claim no
         # direction, fit the ambient (band 0) term only.
         notes.append("band-0-only fallback")
-        solve_cols, prior_x = 1, None
-    else:
-        solve_cols = k
-    design = aw[:, :solve_cols]
-    lam = cfg.regularization * float((design * design).sum()) / solve_cols
-    x, _ = regularized_lstsq(design, sw * rhs if rhs.ndim == 2 else sw[:, 0] * rhs, lam, prior_x)
+        solve_cols = 1
+        x, _ = regularized_lstsq(aw[:, :1], rhs_w, cfg.regularization, relative=True)
 
     f = np.zeros((3, k))
     if cfg.mode == "white":
@@ -242,9 +254,10 @@ def solve_lighting(radiance: np.ndarray, transfer: np.ndarray, normals: np.ndarr
         notes.append("solution overflowed: returning the " + ("prior" if prior is not None else "zero lighting"))
         f = fallback.copy()
 
-    resid = a @ f.T - obs
-    mean_obs = float(np.abs(obs).mean())
+    c = float(np.abs(obs).max()) or 1.0  # residual in units of the data: no under/overflow
     with np.errstate(over="ignore", invalid="ignore"):
+        resid = (a @ f.T - obs) / c
+        mean_obs = float(np.abs(obs / c).mean())
         rms = float(np.sqrt(np.mean(resid * resid)) / mean_obs) if mean_obs > 0 else 0.0
     diag = SolveDiagnostics(n_samples=n, condition_number=cond, effective_rank=rank,
                             residual_rms=float(np.nan_to_num(rms, nan=0.0, posinf=np.finfo(np.float64).max)),

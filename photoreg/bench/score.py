@@ -1,0 +1,237 @@
+"""`photoreg score OUT --gt RECORDING`: official accuracy of a run against the recording's ground truth.
+
+Lighting: every frame of OUT/lighting.jsonl against RECORDING/lighting_gt.json (metrics in
+photoreg.bench.metrics; all are scale-invariant, so the GT "exposure" plays no part). Frames whose
+SH is non-finite, and frames of the recording with no line at all, are counted in
+`nonfinite_fraction` and left out of the other metrics.
+
+Composites (--composite): for each insert render RECORDING/insert/NNNNNN.exr, the run's composite
+(OUT/composite_linear/NNNNNN.exr, else OUT/composite/NNNNNN.png decoded from sRGB) and the 'no
+shadow' baseline (camera frame with the perfect object pasted in) are compared with it over the
+object mask RECORDING/insert_mask/NNNNNN.png dilated by 40 px.
+"""
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from ..io.atomic import write_json
+from ..io.images import read_exr, read_rgb, srgb_to_linear
+from ..io.recording import detect_format, open_recording
+from ..lighting import sh
+from . import metrics
+
+LIGHTING_METRICS = ("direction_deg", "irradiance_si_rmse_upper", "irradiance_si_rmse_sphere", "colour_deg")
+COMPOSITE_METRICS = ("rmse", "si_rmse", "baseline_rmse", "baseline_si_rmse", "flip", "baseline_flip")
+
+
+def _sh_array(value, bands, where: str) -> np.ndarray:
+    """A (3, B*B) float array from JSON (null entries become NaN); ValueError on a wrong shape."""
+    try:
+        arr = np.array([[np.nan if x is None else x for x in row] for row in value], dtype=np.float64)
+    except (TypeError, ValueError) as e:
+        raise ValueError(f"{where}: 'sh' is not a 3 x B*B list of numbers ({e})") from None
+    if arr.ndim != 2 or arr.shape[0] != 3:
+        raise ValueError(f"{where}: 'sh' must have 3 rows (RGB), got shape {arr.shape}")
+    b = math.isqrt(arr.shape[1])
+    if b * b != arr.shape[1] or b == 0:
+        raise ValueError(f"{where}: 'sh' rows have {arr.shape[1]} coefficients, not a square number")
+    if bands is not None and bands != b:
+        raise ValueError(f"{where}: band mismatch: 'bands' is {bands} but 'sh' holds {b} bands")
+    return arr
+
+
+def load_gt(recording: str | Path) -> np.ndarray:
+    """Ground-truth SH (3, B*B) from RECORDING/lighting_gt.json."""
+    path = Path(recording) / "lighting_gt.json"
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: no ground-truth lighting (lighting_gt.json) in {recording}")
+    try:
+        obj = json.loads(path.read_text())
+    except json.JSONDecodeError as e:
+        raise ValueError(f"{path}: malformed JSON at line {e.lineno}: {e.msg}") from None
+    if not isinstance(obj, dict) or "sh" not in obj:
+        raise ValueError(f"{path}: expected an object with 'bands' and 'sh'")
+    if obj.get("frame", "world") != "world":
+        raise ValueError(f"{path}: ground truth must be in the world frame, got {obj['frame']!r}")
+    gt = _sh_array(obj["sh"], obj.get("bands"), str(path))
+    if not np.isfinite(gt).all():
+        raise ValueError(f"{path}: ground-truth SH has non-finite values")
+    return gt
+
+
+def load_lighting(out: str | Path) -> dict[int, np.ndarray]:
+    """frame index -> SH (3, B*B) from OUT/lighting.jsonl (non-finite SH kept as is, 'sh': null -> NaN)."""
+    path = Path(out) / "lighting.jsonl"
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: no per-frame lighting (lighting.jsonl) in {out}")
+    frames: dict[int, np.ndarray] = {}
+    lines: dict[int, int] = {}
+    with path.open() as f:
+        for lineno, line in enumerate(f, 1):
+            if not line.strip():
+                continue
+            where = f"{path}:{lineno}"
+            try:
+                obj = json.loads(line)
+            except json.JSONDecodeError as e:
+                raise ValueError(f"{where}: malformed JSON: {e.msg} (column {e.colno})") from None
+            if not isinstance(obj, dict) or "frame" not in obj or "sh" not in obj:
+                raise ValueError(f"{where}: expected an object with 'frame' and 'sh'")
+            frame = obj["frame"]
+            if not isinstance(frame, int) or frame < 0:
+                raise ValueError(f"{where}: 'frame' must be a non-negative integer, got {frame!r}")
+            if frame in frames:
+                raise ValueError(f"{where}: frame {frame} already given on line {lines[frame]}")
+            bands = obj.get("bands")
+            if obj["sh"] is None:
+                frames[frame] = np.full((3, (bands or 1) ** 2), np.nan)
+            else:
+                frames[frame] = _sh_array(obj["sh"], bands, where)
+            lines[frame] = lineno
+    return frames
+
+
+def color_files(recording: str | Path) -> list[Path]:
+    """Colour image of each frame in the recording's frame order (photoreg.io.recording);
+    [] for a folder that holds ground truth but no recognised recording index."""
+    path = Path(recording)
+    try:
+        detect_format(path)
+    except ValueError:
+        return []
+    return open_recording(path).color_files
+
+
+def score_lighting(estimates: dict[int, np.ndarray], gt: np.ndarray, n_expected: int = 0) -> dict:
+    """Per-frame lighting metrics and their summaries; frames 0..n_expected-1 missing count as non-finite."""
+    frames = sorted(set(estimates) | set(range(n_expected)))
+    per_frame, notes = [], []
+    n_missing = n_nonfinite = n_no_dir = 0
+    for i in frames:
+        est = estimates.get(i)
+        if est is None:
+            n_missing += 1
+            per_frame.append({"frame": i, "finite": False, "missing": True})
+            continue
+        if not np.isfinite(est).all():
+            n_nonfinite += 1
+            per_frame.append({"frame": i, "finite": False})
+            continue
+        m = metrics.lighting_metrics(est, gt)
+        if not metrics.has_direction(est):
+            n_no_dir += 1
+        per_frame.append({"frame": i, "finite": True, **m})
+    gt_has_dir = metrics.has_direction(gt)
+    if not gt_has_dir:
+        notes.append("ground truth has no l=1 band: direction error not defined, left out")
+        for r in per_frame:
+            r.pop("direction_deg", None)
+    if n_no_dir:
+        notes.append(f"{n_no_dir} frame(s) without an l=1 band: direction error counted as "
+                     f"{metrics.NO_DIRECTION_DEG:g} deg (no information)")
+    if n_missing:
+        notes.append(f"{n_missing} frame(s) of the recording have no line in lighting.jsonl")
+    n_bad = n_missing + n_nonfinite
+    est_bands = sorted({sh.bands_of(e.shape[1]) for e in estimates.values()})
+    return {"n_frames": len(frames), "n_scored": len(frames) - n_bad, "n_nonfinite": n_nonfinite,
+            "n_missing": n_missing, "nonfinite_fraction": n_bad / len(frames) if frames else 0.0,
+            "gt_bands": sh.bands_of(gt.shape[1]), "estimate_bands": est_bands,
+            "metrics": {k: metrics.summarize(r.get(k) for r in per_frame)
+                        for k in LIGHTING_METRICS if k != "direction_deg" or gt_has_dir},
+            "notes": notes, "per_frame": per_frame}
+
+
+def _read_mask(path: Path) -> np.ndarray:
+    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if img is None:
+        raise FileNotFoundError(f"{path}: object mask missing or unreadable")
+    return (img.max(axis=2) if img.ndim == 3 else img) > 0
+
+
+def score_composites(out: str | Path, recording: str | Path) -> dict:
+    """Composite and no-shadow-baseline errors over each insert frame's ROI."""
+    out, recording = Path(out), Path(recording)
+    inserts = sorted(p for p in (recording / "insert").glob("*.exr") if p.stem.isdigit())
+    if not inserts:
+        raise FileNotFoundError(f"{recording / 'insert'}: no insert renders (NNNNNN.exr) to score composites against")
+    rgb = color_files(recording)
+    with_flip = metrics.flip_available()
+    notes = [] if with_flip else ["FLIP skipped: flip_evaluator is not installed"]
+    per_frame, missing = [], []
+    for p in inserts:
+        i = int(p.stem)
+        gt = read_exr(p)
+        mask = _read_mask(recording / "insert_mask" / f"{p.stem}.png")
+        if i >= len(rgb):
+            raise FileNotFoundError(f"{p}: frame {i} is not a frame of the recording {recording} "
+                                    f"({len(rgb)} frames)")
+        camera = srgb_to_linear(read_rgb(rgb[i]))
+        roi = metrics.roi_mask(mask)
+        base = metrics.composite_metrics(metrics.no_shadow_baseline(camera, gt, mask), gt, roi, with_flip)
+        row = {"frame": i, **{f"baseline_{k}": v for k, v in base.items()}}
+        lin, png = out / "composite_linear" / f"{p.stem}.exr", out / "composite" / f"{p.stem}.png"
+        if lin.is_file():
+            est = read_exr(lin)
+        elif png.is_file():
+            est = srgb_to_linear(read_rgb(png))
+        else:
+            est = None
+            missing.append(i)
+        if est is not None:
+            row.update(metrics.composite_metrics(est, gt, roi, with_flip))
+        per_frame.append(row)
+    if missing:
+        notes.append(f"no composite for insert frame(s) {missing}: only the baseline is scored there")
+    return {"n_inserts": len(inserts), "n_scored": len(inserts) - len(missing), "roi_dilation_px": metrics.ROI_DILATION_PX,
+            "flip": with_flip,
+            "metrics": {k: metrics.summarize(r.get(k) for r in per_frame)
+                        for k in COMPOSITE_METRICS if with_flip or "flip" not in k},
+            "notes": notes, "per_frame": per_frame}
+
+
+def score(out: str | Path, recording: str | Path, composite: bool = False) -> dict:
+    """All scores of run folder `out` against `recording` as a JSON-ready dict."""
+    gt = load_gt(recording)
+    result = {"out": str(out), "recording": str(recording),
+              "lighting": score_lighting(load_lighting(out), gt, len(color_files(recording)))}
+    if composite:
+        result["composite"] = score_composites(out, recording)
+    return result
+
+
+def _table(summaries: dict[str, dict]) -> list[str]:
+    rows = [f"  {'metric':28s}{'median':>10s}{'mean':>10s}{'p90':>10s}"]
+    for name, s in summaries.items():
+        cells = "".join(f"{'-':>10s}" if s[k] is None else f"{s[k]:10.4g}" for k in ("median", "mean", "p90"))
+        rows.append(f"  {name:28s}{cells}")
+    return rows
+
+
+def format_report(result: dict) -> str:
+    """The readable table printed by `photoreg score`."""
+    lt = result["lighting"]
+    lines = [f"photoreg score: {result['out']} against {result['recording']}",
+             f"lighting (GT {lt['gt_bands']} bands, estimate {', '.join(map(str, lt['estimate_bands'])) or '-'} bands): "
+             f"{lt['n_frames']} frames, {lt['n_scored']} scored, non-finite or missing "
+             f"{lt['n_nonfinite'] + lt['n_missing']} ({100 * lt['nonfinite_fraction']:.1f}%)"]
+    lines += _table(lt["metrics"]) + [f"  note: {n}" for n in lt["notes"]]
+    if "composite" in result:
+        c = result["composite"]
+        lines.append(f"composite (ROI = object mask dilated by {c['roi_dilation_px']} px, linear RGB): "
+                     f"{c['n_inserts']} insert frames, {c['n_scored']} composites scored")
+        lines += _table(c["metrics"]) + [f"  note: {n}" for n in c["notes"]]
+    return "\n".join(lines)
+
+
+def score_command(args) -> int:
+    """CLI entry: print the report, write --json atomically when given."""
+    result = score(args.out, args.gt, composite=bool(getattr(args, "composite", False)))
+    print(format_report(result))
+    if getattr(args, "json_out", None):
+        write_json(args.json_out, result)
+    return 0

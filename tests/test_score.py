@@ -1,0 +1,228 @@
+"""Official accuracy metrics and `photoreg score` on tiny synthetic runs and recordings."""
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from photoreg.bench import metrics
+from photoreg.bench.score import format_report, score, score_command
+from photoreg.cli import main as cli_main
+from photoreg.io.images import linear_to_srgb, write_exr, write_png_rgb
+from photoreg.lighting import sh
+
+QUAD = sh.fibonacci_sphere(4000)
+
+
+def sun_sky_gt(sun=(0.4, 0.3, 0.866), bands=8):
+    """Directional GT lighting: a sun lobe plus a dim sky, projected to `bands` bands."""
+    s = np.asarray(sun, float) / np.linalg.norm(sun)
+    f = np.exp(30 * (QUAD @ s - 1))[:, None] * [5.0, 4.5, 3.5] + np.clip(QUAD[:, 2:], 0, None) * [0.1, 0.15, 0.2] + 0.03
+    return sh.project(QUAD, f, np.full(len(QUAD), 4 * math.pi / len(QUAD)), bands)
+
+
+def l1_lobe(direction, ambient=1.0, strength=0.8):
+    """Grey SH with band 0 and an l=1 band pointing along `direction` (2 bands)."""
+    d = np.asarray(direction, float) / np.linalg.norm(direction)
+    c = np.array([ambient, strength * d[1], strength * d[2], strength * d[0]])
+    return np.tile(c, (3, 1))
+
+
+def write_run(tmp_path, gt, estimates, n_rgb=0):
+    """RECORDING (lighting_gt.json, an index of n_rgb frames) and OUT (lighting.jsonl) under tmp_path."""
+    rec, out = tmp_path / "rec", tmp_path / "out"
+    rec.mkdir(exist_ok=True)
+    out.mkdir(exist_ok=True)
+    b = sh.bands_of(gt.shape[1])
+    (rec / "lighting_gt.json").write_text(json.dumps({"bands": b, "sh": gt.tolist(), "frame": "world", "exposure": 1.0}))
+    if n_rgb:  # a native recording index (images are only read where a test writes them)
+        for kind in ("rgb", "depth"):
+            (rec / f"{kind}.txt").write_text("".join(f"{i * 0.1:.6f} {kind}/{i:06d}.png\n" for i in range(n_rgb)))
+        (rec / "intrinsics.json").write_text(json.dumps({"width": 160, "height": 120, "fx": 150.0, "fy": 150.0,
+                                                         "cx": 79.5, "cy": 59.5, "depth_scale": 5000.0}))
+    lines = []
+    for i, e in enumerate(estimates):
+        if isinstance(e, str):
+            lines.append(e)
+            continue
+        e = np.atleast_2d(e)
+        lines.append(json.dumps({"frame": i, "timestamp": 0.1 * i, "bands": sh.bands_of(e.shape[1]), "sh": e.tolist(),
+                                 "dominant_direction": sh.dominant_direction(e).tolist(),
+                                 "diagnostics": {"n_samples": 100}, "timings_ms": {"solve": 1.0}}))
+    (out / "lighting.jsonl").write_text("\n".join(lines) + "\n")
+    return out, rec
+
+
+def test_gt_scores_zero(tmp_path):
+    gt = sun_sky_gt()
+    lt = score(*write_run(tmp_path, gt, [gt, gt]))["lighting"]
+    assert lt["n_scored"] == 2 and lt["nonfinite_fraction"] == 0
+    for name, s in lt["metrics"].items():
+        assert s["median"] == pytest.approx(0, abs=1e-6) and s["p90"] == pytest.approx(0, abs=1e-6), name
+
+
+def test_scale_invariance(tmp_path):
+    gt = sun_sky_gt()
+    lt = score(*write_run(tmp_path, gt, [3 * gt, 0.01 * gt]))["lighting"]
+    for name, s in lt["metrics"].items():
+        assert s["mean"] == pytest.approx(0, abs=1e-6), name
+
+
+def test_truncated_gt_is_close_but_not_zero(tmp_path):
+    gt = sun_sky_gt()
+    lt = score(*write_run(tmp_path, gt, [sh.truncate(gt, 3)]))["lighting"]["metrics"]
+    assert lt["direction_deg"]["median"] == pytest.approx(0, abs=1e-6)
+    assert 1e-4 < lt["irradiance_si_rmse_sphere"]["median"] < 0.1
+
+
+def test_constant_estimate_scores_badly(tmp_path):
+    gt = sun_sky_gt()
+    ambient = np.zeros((3, 9))
+    ambient[:, 0] = 1.0
+    lt = score(*write_run(tmp_path, gt, [ambient]))["lighting"]
+    m = lt["metrics"]
+    assert m["direction_deg"]["median"] == 90.0
+    assert m["irradiance_si_rmse_upper"]["median"] > 0.1 and m["irradiance_si_rmse_sphere"]["median"] > 0.1
+    assert any("90 deg" in n for n in lt["notes"])
+
+
+@pytest.mark.parametrize("angle", [0.0, 17.0, 90.0, 150.0])
+def test_rotated_lobe_direction_error(tmp_path, angle):
+    d = np.array([0.3, -0.2, 0.9])
+    axis = np.cross(d, [1.0, 0.0, 0.0])
+    rotated = Rotation.from_rotvec(np.radians(angle) * axis / np.linalg.norm(axis)).apply(d)
+    lt = score(*write_run(tmp_path, l1_lobe(d), [l1_lobe(rotated)]))["lighting"]
+    assert lt["metrics"]["direction_deg"]["median"] == pytest.approx(angle, abs=1e-6)
+    assert lt["metrics"]["colour_deg"]["median"] == pytest.approx(0, abs=1e-6)
+
+
+def test_colour_error():
+    gt = l1_lobe([0, 0, 1])
+    tinted = gt * np.array([[1.0], [1.0], [0.5]])
+    expected = math.degrees(math.acos(2.5 / math.sqrt(3 * 2.25)))
+    assert metrics.colour_error_deg(tinted, gt) == pytest.approx(expected, abs=1e-6)
+
+
+def test_non_finite_and_missing_frames_counted(tmp_path):
+    gt = sun_sky_gt()
+    bad = gt.copy()
+    bad[1, 4] = np.nan
+    null_line = json.dumps({"frame": 2, "bands": 8, "sh": None})
+    # Frames 0..5 in the recording; 0 good, 1 NaN, 2 null, 3 good, 4 and 5 missing.
+    lt = score(*write_run(tmp_path, gt, [gt, bad, null_line, gt], n_rgb=6))["lighting"]
+    assert (lt["n_frames"], lt["n_scored"], lt["n_nonfinite"], lt["n_missing"]) == (6, 2, 2, 2)
+    assert lt["nonfinite_fraction"] == pytest.approx(4 / 6)
+    assert lt["metrics"]["direction_deg"]["n"] == 2
+    assert [r["finite"] for r in lt["per_frame"]] == [True, False, False, True, False, False]
+
+
+def test_errors_are_clear(tmp_path):
+    gt = sun_sky_gt(bands=3)
+    out, rec = write_run(tmp_path, gt, [gt, "{not json", gt])
+    with pytest.raises(ValueError, match=r"lighting\.jsonl:2: malformed JSON"):
+        score(out, rec)
+    out, rec = write_run(tmp_path, gt, [json.dumps({"frame": 0, "bands": 2, "sh": gt.tolist()})])
+    with pytest.raises(ValueError, match="band mismatch"):
+        score(out, rec)
+    out, rec = write_run(tmp_path, gt, [json.dumps({"frame": 0, "sh": gt[:2].tolist()})])
+    with pytest.raises(ValueError, match="3 rows"):
+        score(out, rec)
+    out, rec = write_run(tmp_path, gt, [gt, json.dumps({"frame": 0, "sh": gt.tolist()})])
+    with pytest.raises(ValueError, match="frame 0 already given on line 1"):
+        score(out, rec)
+    with pytest.raises(FileNotFoundError, match="lighting_gt.json"):
+        score(out, tmp_path / "nowhere")
+    (out / "lighting.jsonl").unlink()
+    with pytest.raises(FileNotFoundError, match="lighting.jsonl"):
+        score(out, rec)
+    (rec / "lighting_gt.json").write_text(json.dumps({"bands": 4, "sh": gt.tolist()}))
+    with pytest.raises(ValueError, match="band mismatch"):
+        score(out, rec)
+
+
+def test_score_command_prints_and_writes_json(tmp_path, capsys):
+    gt = sun_sky_gt()
+    out, rec = write_run(tmp_path, gt, [gt, 2 * gt])
+    json_path = tmp_path / "res" / "score.json"
+    assert cli_main(["score", str(out), "--gt", str(rec), "--json", str(json_path)]) == 0
+    text = capsys.readouterr().out
+    assert "direction_deg" in text and "irradiance_si_rmse_upper" in text and "p90" in text
+    saved = json.loads(json_path.read_text())
+    assert saved["lighting"]["n_scored"] == 2
+    assert cli_main(["score", str(tmp_path / "missing"), "--gt", str(rec)]) == 2
+    assert "lighting.jsonl" in capsys.readouterr().err
+
+
+# --- composites --------------------------------------------------------------------------------------
+
+def synthetic_insert(h=120, w=160):
+    """Camera frame (linear), GT insert render with an object and its shadow, and the object mask."""
+    yy, xx = np.mgrid[0:h, 0:w]
+    camera = np.dstack([0.2 + 0.3 * xx / w, 0.3 + 0.2 * yy / h, np.full((h, w), 0.25)]).astype(np.float32)
+    mask = (abs(yy - 60) < 15) & (abs(xx - 80) < 15)
+    shadow = (abs(yy - 75) < 12) & (xx - 80 > -10) & (xx - 80 < 35) & ~mask
+    gt = camera.copy()
+    gt[shadow] *= 0.4
+    gt[mask] = [0.7, 0.1, 0.1]
+    return camera, gt, mask
+
+
+def test_roi_mask_dilation():
+    mask = np.zeros((200, 200), bool)
+    mask[100, 100] = True
+    roi = metrics.roi_mask(mask)
+    assert roi[100, 140] and roi[60, 100] and not roi[100, 141] and not roi[71, 71]
+
+
+def test_composite_metrics_identical_and_baseline():
+    camera, gt, mask = synthetic_insert()
+    roi = metrics.roi_mask(mask)
+    assert metrics.composite_metrics(gt, gt, roi) == {"rmse": 0.0, "si_rmse": 0.0}
+    base = metrics.composite_metrics(metrics.no_shadow_baseline(camera, gt, mask), gt, roi)
+    assert base["rmse"] > 0.02 and base["si_rmse"] > 0.05
+    assert metrics.composite_metrics(2 * gt, gt, roi)["si_rmse"] == pytest.approx(0, abs=1e-7)
+    with pytest.raises(ValueError, match="shapes differ"):
+        metrics.composite_metrics(gt[:10], gt, roi)
+
+
+def test_score_composite_end_to_end(tmp_path, capsys):
+    camera, gt, mask = synthetic_insert()
+    lighting = sun_sky_gt()
+    out, rec = write_run(tmp_path, lighting, [lighting] * 3, n_rgb=3)
+    for i in range(3):
+        write_png_rgb(rec / "rgb" / f"{i:06d}.png", linear_to_srgb(camera))
+    for i in (1, 2):
+        write_exr(rec / "insert" / f"{i:06d}.exr", gt)
+        write_png_rgb(rec / "insert_mask" / f"{i:06d}.png", np.repeat(mask[..., None] * 255, 3, axis=2).astype(np.uint8))
+    write_exr(out / "composite_linear" / "000001.exr", gt)          # perfect, linear
+    write_png_rgb(out / "composite" / "000002.png", linear_to_srgb(gt))  # perfect up to 8-bit sRGB quantisation
+    res = score(out, rec, composite=True)["composite"]
+    assert res["n_inserts"] == 2 and res["n_scored"] == 2
+    rows = {r["frame"]: r for r in res["per_frame"]}
+    assert rows[1]["rmse"] == 0.0 and rows[2]["rmse"] < 3e-3
+    assert rows[1]["baseline_rmse"] > 10 * rows[2]["rmse"]
+    if not metrics.flip_available():
+        assert any("FLIP skipped" in n for n in res["notes"]) and "flip" not in res["metrics"]
+    text = format_report(score(out, rec, composite=True))
+    assert "baseline_si_rmse" in text
+    (out / "composite_linear" / "000001.exr").unlink()
+    res = score(out, rec, composite=True)["composite"]
+    assert res["n_scored"] == 1 and any("[1]" in n for n in res["notes"])
+
+
+def test_score_composite_without_inserts(tmp_path):
+    lighting = sun_sky_gt()
+    out, rec = write_run(tmp_path, lighting, [lighting])
+    with pytest.raises(FileNotFoundError, match="no insert renders"):
+        score(out, rec, composite=True)
+
+
+def test_flip_when_installed():
+    pytest.importorskip("flip_evaluator", reason="flip_evaluator not installed: FLIP is optional")
+    camera, gt, mask = synthetic_insert()
+    roi = metrics.roi_mask(mask)
+    assert metrics.composite_metrics(gt, gt, roi, with_flip=True)["flip"] == 0.0
+    assert metrics.composite_metrics(metrics.no_shadow_baseline(camera, gt, mask), gt, roi, with_flip=True)["flip"] > 0.01
