@@ -1,8 +1,8 @@
 """The per-frame pipeline: preprocess -> pose -> fuse -> ray cast -> transfer R_TR -> solve F.
 
-Every stage is timed; timings travel with the FrameResult. Lighting samples are taken on a grid of
-stride x stride pixel blocks: the ray cast runs at block centres (intrinsics scaled by 1/stride)
-and the observed radiance is the block's area average (less noise, no extra cost).
+Every stage is timed; timings travel with the FrameResult. Lighting samples are the pixels
+(r*stride, c*stride); the observed radiance there is a box average centred on the pixel (less
+noise at no extra cost) and a sample is used only when its whole box is usable.
 """
 from __future__ import annotations
 
@@ -15,7 +15,7 @@ import numpy as np
 from .config import Session
 from .device import init_warp, resolve_device
 from .kernels.raycast import raycast_surface
-from .kernels.transfer import make_direction_set, transfer
+from .kernels.transfer import make_direction_set, radiance_transfer
 from .lighting import sh
 from .lighting.solver import SolverConfig, solve_lighting
 from .preprocess import Prepared, prepare
@@ -37,7 +37,6 @@ class Pipeline:
         self.dirs, self.Y = make_direction_set(lc.rays, lc.bands, seed=0)
         self.solver_cfg = SolverConfig(bands=lc.bands, weighting=lc.weighting, regularization=lc.regularization,
                                        min_visible=lc.min_visible, mode=lc.mode)
-        self.sample_intrinsics = intrinsics.scaled(1.0 / lc.stride) if lc.stride > 1 else intrinsics
         self.tracker = None
         if not session.recording.use_poses:
             from .recon.tracking import Tracker
@@ -61,12 +60,13 @@ class Pipeline:
         return frame.pose, []
 
     def _samples(self, prep: Prepared, maps) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Radiance (area average per block), world points and normals at usable block centres."""
-        si = self.sample_intrinsics
-        size = (si.width, si.height)
-        if (si.width, si.height) != (prep.linear.shape[1], prep.linear.shape[0]):
-            radiance = cv2.resize(prep.linear, size, interpolation=cv2.INTER_AREA)
-            usable = cv2.resize(prep.usable.astype(np.float32), size, interpolation=cv2.INTER_AREA) > 0.999
+        """Radiance (box average), world points and normals at the usable sample pixels."""
+        st = self.session.lighting.stride
+        if st > 1:
+            k = (st | 1, st | 1)  # odd box, centred on the sample pixel
+            radiance = cv2.boxFilter(prep.linear, -1, k, borderType=cv2.BORDER_REFLECT)[::st, ::st]
+            usable = cv2.boxFilter(prep.usable.astype(np.float32), -1, k, borderType=cv2.BORDER_REFLECT)[::st, ::st]
+            usable = usable > 0.999
         else:
             radiance, usable = prep.linear, prep.usable
         keep = usable & maps.valid
@@ -89,26 +89,25 @@ class Pipeline:
                 self.volume.integrate(prep.depth, prep.linear, self.intrinsics, pose)
             with self._timed(t, "raycast"):
                 grid = self.volume.dense_grid()
-                maps = raycast_surface(grid, self.sample_intrinsics, pose, rc.depth_min, rc.depth_max, self.device)
+                maps = raycast_surface(grid, self.intrinsics, pose, rc.depth_min, rc.depth_max, stride=lc.stride)
             with self._timed(t, "sample"):
                 radiance, points, normals = self._samples(prep, maps)
             with self._timed(t, "transfer"):
-                R, visible = transfer(grid, points, normals, self.dirs, self.Y,
-                                      offset=lc.ray_offset_voxels * rc.voxel_size, ray_length=lc.ray_length,
-                                      device=self.device)
+                tr = radiance_transfer(grid, points, normals, self.dirs, self.Y,
+                                       offset=lc.ray_offset_voxels * rc.voxel_size, ray_length=lc.ray_length)
             with self._timed(t, "solve"):
-                F, diag = solve_lighting(radiance, R, normals, visible, self.solver_cfg, prior=self.prev_F)
+                F, diag = solve_lighting(radiance, tr.transfer, normals, tr.visible_fraction, self.solver_cfg,
+                                         prior=self.prev_F)
         if F is None:  # no pose: keep the previous estimate (or darkness), flagged weak
-            F = self.prev_F if self.prev_F is not None else np.zeros((3, lc.bands * lc.bands))
-            diag = SolveDiagnostics(notes=["no pose for this frame: previous estimate repeated"])
+            prev = self.prev_F if self.prev_F is not None else np.zeros((3, lc.bands * lc.bands))
+            F, diag = Lighting(prev.copy()), SolveDiagnostics(notes=["no pose: previous estimate repeated"])
         diag.notes = notes + list(diag.notes)
         if prep.saturated_fraction > 0.2:
             diag.notes.append(f"{prep.saturated_fraction:.0%} of pixels saturated")
         if prep.black_fraction > 0.5:
             diag.notes.append(f"{prep.black_fraction:.0%} of pixels black")
-        if np.all(np.isfinite(F)) and not diag.weak:
-            self.prev_F = F.sh if isinstance(F, Lighting) else F
-        F = F if isinstance(F, Lighting) else Lighting(np.asarray(F, dtype=np.float64))
+        if not diag.weak:
+            self.prev_F = F.sh
         t["total"] = (time.perf_counter() - t_all) * 1000.0
         self.n_frames += 1
         return FrameResult(frame.index, frame.timestamp, F, diag, sh.dominant_direction(F.sh), t)
