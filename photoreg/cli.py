@@ -12,6 +12,10 @@ HANDLERS = {
     "info": "photoreg.io.recording:info_command",
     "synth": "photoreg.synth.generate:synth_command",
     "score": "photoreg.bench.score:score_command",
+    "serve": "photoreg.service.server:serve_command",
+    "stream": "photoreg.service.client:stream_command",
+    "batch": "photoreg.batch.runner:batch_command",
+    "bench": "photoreg.bench.speed:speed_command",
 }
 
 
@@ -53,14 +57,77 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--camera", default="orbit", choices=["orbit", "handheld", "static"])
     p.add_argument("--direct-only", action="store_true", help="direct illumination only (no interreflection)")
-    p.add_argument("--insert-frames", default="auto", help="frames re-rendered with a virtual object: list or 'auto'")
+    p.add_argument("--insert-frames", default="auto",
+                   help="frames re-rendered with a virtual object: comma-separated list, 'auto' or 'none'")
     p.add_argument("--no-noise", action="store_true", help="write clean depth only")
+    p.add_argument("--mesh", help="mesh file for the tabletop scene's mesh object (default: a procedural cylinder)")
 
     p = sub.add_parser("score", help="official accuracy metrics of a run against ground truth")
     p.add_argument("out", help="output folder of a run (holds lighting.jsonl)")
     p.add_argument("--gt", required=True, help="recording folder with lighting_gt.json")
     p.add_argument("--composite", action="store_true", help="also score composites against insert renders")
     p.add_argument("--json", dest="json_out", help="write the scores to this JSON file")
+
+    p = sub.add_parser("serve", help="WebSocket service: per-frame lighting for live RGB-D streams (docs/protocol.md)")
+    p.add_argument("--host", default="127.0.0.1", help="interface to listen on (default loopback only)")
+    p.add_argument("--port", type=int, default=8765, help="TCP port (0: any free port)")
+    p.add_argument("--token", help="clients must send this token in hello (default $PHOTOREG_TOKEN, else none)")
+    p.add_argument("--device", choices=["auto", "cpu", "cuda"], default="auto", help="compute device (default auto)")
+    p.add_argument("--max-clients", type=int, default=4, help="simultaneous connections; more are refused")
+    p.add_argument("--queue", type=int, default=2,
+                   help="frames waiting per connection; when full the oldest is dropped (latest wins)")
+    p.add_argument("--idle-timeout", type=float, default=300.0,
+                   help="close a connection after this many seconds without a message (0: never)")
+    p.add_argument("--max-message-mb", type=float, default=32.0, help="largest message accepted, MiB")
+
+    p = sub.add_parser("stream", help="replay a recording through a photoreg server; save its replies")
+    p.add_argument("recording", help="recording folder (format autodetected)")
+    p.add_argument("--url", default="ws://127.0.0.1:8765", help="server URL (default ws://127.0.0.1:8765)")
+    p.add_argument("--token", help="token the server asks for (default $PHOTOREG_TOKEN)")
+    p.add_argument("--realtime", action="store_true",
+                   help="send at the recording's frame times (the server drops frames it cannot keep up with)")
+    p.add_argument("--window", type=int, default=2, help="frames in flight when not --realtime (default 2)")
+    p.add_argument("--out", help="save lighting.jsonl and summary.json here")
+    p.add_argument("--frames", help="frames to send: N (first N), A:B or A:B:S (0-based, end exclusive)")
+    p.add_argument("--color", choices=["png", "jpeg", "rgb8"], default="png", help="colour encoding (default png)")
+    p.add_argument("--depth", choices=["png16", "u16", "f32"], default="png16", help="depth encoding (default png16)")
+    p.add_argument("--stride", type=int, help="sample every n-th pixel for the transfer (1, 2, 4, ...)")
+    p.add_argument("--rays", type=int, help="visibility rays per pixel over the hemisphere")
+    p.add_argument("--bands", type=int, help="SH bands B of the lighting (B*B coefficients)")
+    p.add_argument("--voxel-size", type=float, help="TSDF voxel size in metres")
+    p.add_argument("--ray-length", type=float, help="visibility ray length in metres")
+    p.add_argument("--no-poses", action="store_true", help="ask the server to track the camera instead of "
+                                                           "using recorded poses")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+
+    p = sub.add_parser("bench", help="speed benchmarks: per-stage ms of the full pipeline on one device")
+    bsub = p.add_subparsers(dest="bench_kind", required=True)
+    b = bsub.add_parser("speed", help="per-stage milliseconds on a recording")
+    b.add_argument("recording")
+    b.add_argument("--device", choices=["auto", "cpu", "cuda"], default=None)
+    b.add_argument("--frames", help="frames to use (default 0:12)")
+    b.add_argument("--warmup", type=int, default=2, help="leading frames left out of the figures")
+    b.add_argument("--stride", type=int, default=4)
+    b.add_argument("--rays", type=int, default=64)
+    b.add_argument("--bands", type=int, default=3)
+    b.add_argument("--voxel-size", type=float)
+    b.add_argument("--ray-length", type=float)
+    b.add_argument("--json", dest="json_out", help="write the figures to this JSON file")
+
+    p = sub.add_parser("batch", help="run many session files, each into its own output folder (local workers or Ray)")
+    p.add_argument("sessions", nargs="+", help="session files (sessions/*.toml); all are validated before any runs")
+    p.add_argument("--workers", type=int,
+                   help="sessions run at once (default: one per GPU, else one per CPU core; Ray: CPUs of the "
+                        "local instance it starts)")
+    p.add_argument("--executor", choices=["local", "ray"], default="local",
+                   help="local process pool (default) or Ray tasks (extra 'ray')")
+    p.add_argument("--ray-address", help="connect to this Ray cluster (default: start a local Ray instance)")
+    p.add_argument("--resume", action="store_true",
+                   help="skip sessions whose outputs are complete and whose session file is unchanged")
+    p.add_argument("--out", default="out/batch",
+                   help="batch report folder: batch_summary.json, batch_report.md, plot (default out/batch)")
+    p.add_argument("--device", choices=["auto", "cpu", "cuda"], default=None,
+                   help="compute device for every session (default: each session's own; GPUs shared round-robin)")
     return ap
 
 

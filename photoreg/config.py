@@ -31,7 +31,7 @@ class ReconstructionConfig:
     trunc_voxels: float = 4.0     # truncation distance in voxels
     depth_min: float = 0.1        # metres
     depth_max: float = 4.0        # metres
-    block_count: int = 40000      # Open3D hash-map capacity (blocks of 16^3 voxels)
+    block_count: int = 6000       # initial Open3D hash-map capacity in 16^3-voxel blocks (~80 B/voxel: 500 MB); grows on demand
 
 
 @dataclass

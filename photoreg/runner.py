@@ -6,6 +6,7 @@ import os
 import sys
 import time
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 
@@ -86,8 +87,10 @@ def write_pictures(out: Path, r: FrameResult, pose) -> None:
     write_png_rgb(out / "sphere" / f"{name}.png", linear_to_srgb(tonemap(sphere)))
 
 
-def run_session(s: Session, quiet: bool = False) -> dict:
-    """Process a session; returns the summary (also written to summary.json)."""
+def run_session(s: Session, quiet: bool = False, on_frame: Callable[[int, int], None] | None = None) -> dict:
+    """Process a session; returns the summary (also written to summary.json).
+
+    on_frame(frames done, frames selected) is called after each frame (batch progress from worker processes)."""
     from .io.recording import iter_frames, open_recording
     from .pipeline import Pipeline
 
@@ -116,6 +119,8 @@ def run_session(s: Session, quiet: bool = False) -> dict:
             if k and (len(results) - 1) % k == 0:
                 write_pictures(out, r, frame.pose)
             progress.step(f"frame {frame.index}" + (" (weak)" if r.diagnostics.weak else ""))
+            if on_frame is not None:
+                on_frame(len(results), len(indices))
     progress.close()
     os.replace(partial, out / "lighting.jsonl")
     wall = time.perf_counter() - t0

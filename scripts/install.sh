@@ -1,10 +1,10 @@
 #!/usr/bin/env bash
 # The one install path for README, CI and Docker.
-# usage: scripts/install.sh [EXTRAS]   (default extras: render,synth,plot,test)
+# usage: scripts/install.sh [EXTRAS]   (default extras: render,synth,plot,serve,ray,test)
 # Picks the Open3D build: the CUDA one where nvidia-smi sees a GPU (or PHOTOREG_CUDA=1), else open3d-cpu.
 set -euo pipefail
 cd "$(dirname "$0")/.."
-extras=${1:-render,synth,plot,test}
+extras=${1:-render,synth,plot,serve,ray,test}
 py=${PYTHON:-python3}
 
 # Debian packages: libusb (open3d import), EGL/OSMesa (pyrender offscreen), LLVM 19 (Mitsuba llvm_ad_rgb).

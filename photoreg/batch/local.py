@@ -1,0 +1,75 @@
+"""Local executor of `photoreg batch`: a spawn-context process pool, one pipeline per process.
+
+Sessions that may use CUDA get the CUDA devices Warp sees round-robin ("cuda:K"); with none they run on
+the CPU. Worker processes send per-frame progress through a queue handed to them at start-up.
+"""
+from __future__ import annotations
+
+import multiprocessing as mp
+import os
+import queue
+from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+
+from .runner import BatchProgress, SessionTask, failed_result, run_one
+
+_progress_queue = None  # set in each worker process by _init_worker
+
+
+def _init_worker(q) -> None:
+    global _progress_queue
+    _progress_queue = q
+
+
+def _run(task: SessionTask) -> dict:
+    return run_one(task, _progress_queue)
+
+
+def assign_devices(tasks: list[SessionTask]) -> int:
+    """Set each session's device to 'cuda:K' round-robin over Warp's CUDA devices unless it asks for the
+    CPU ('auto' falls back to the CPU when there is none, 'cuda' is then an error); returns the GPU count."""
+    wanted = [t for t in tasks if t.session.device != "cpu"]
+    n = 0
+    if wanted:
+        from ..device import init_warp
+
+        n = init_warp().get_cuda_device_count()
+    for k, t in enumerate(wanted):
+        if n:
+            t.session.device = f"cuda:{k % n}"
+        elif t.session.device == "cuda":
+            raise RuntimeError(f"{t.path}: device cuda asked for, but Warp finds no CUDA device on this machine")
+        else:
+            t.session.device = "cpu"
+    return n
+
+
+def _drain(q, progress: BatchProgress) -> None:
+    while True:
+        try:
+            progress.frame(*q.get_nowait())
+        except queue.Empty:
+            return
+
+
+def run_local(tasks: list[SessionTask], progress: BatchProgress, workers: int | None = None) -> list[dict]:
+    """Run the sessions in `workers` processes (default: one per GPU, else one per CPU core); results in
+    task order. A worker process that dies fails its session (and, the pool being broken, those still queued)."""
+    n_gpus = assign_devices(tasks)
+    workers = min(workers or n_gpus or os.cpu_count() or 1, len(tasks))
+    ctx = mp.get_context("spawn")
+    q = ctx.Queue()
+    results: dict[int, dict] = {}
+    with ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_init_worker, initargs=(q,)) as pool:
+        pending = {pool.submit(_run, t): t for t in tasks}
+        while pending:
+            finished, _ = wait(pending, timeout=0.25, return_when=FIRST_COMPLETED)
+            _drain(q, progress)
+            for f in finished:
+                t = pending.pop(f)
+                try:
+                    r = f.result()
+                except Exception as e:  # noqa: BLE001 - the worker process died (BrokenProcessPool)
+                    r = failed_result(t, e)
+                results[t.index] = r
+                progress.finished(r)
+    return [results[t.index] for t in tasks]

@@ -1,0 +1,86 @@
+"""`photoreg bench speed`: per-stage milliseconds of the full per-frame pipeline on one device.
+
+Frames are processed in order (fusion needs them in order); the first `warmup` frames (kernel
+compilation, first allocations) are left out of the figures. The result names the device, the
+Warp/Open3D versions and where fusion ran.
+"""
+from __future__ import annotations
+
+import platform
+import sys
+
+import numpy as np
+
+from ..config import Session, parse_frames, validate
+from ..io.atomic import write_json
+
+
+def device_name(device: str) -> str:
+    """Human name of the Warp device the run used (GPU model, or the CPU model)."""
+    from ..device import init_warp
+
+    wp = init_warp()
+    if device.startswith("cuda"):
+        return wp.get_device(device).name
+    try:
+        for line in open("/proc/cpuinfo"):
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or "cpu"
+
+
+def bench_recording(session: Session, warmup: int = 2) -> dict:
+    """Run the pipeline over the session's frames; mean/p95 ms per stage after warm-up."""
+    import open3d as o3d
+    import warp as wp
+
+    from ..io.recording import iter_frames, open_recording
+    from ..pipeline import Pipeline
+
+    rec = open_recording(session.recording.path, fmt=session.recording.format)
+    indices = parse_frames(session.frames, len(rec))
+    if len(indices) <= warmup:
+        raise ValueError(f"bench: need more than {warmup} frames (warm-up), got {len(indices)}")
+    pipe = Pipeline(session, rec.intrinsics)
+    timings = []
+    for k, frame in enumerate(iter_frames(rec, indices)):
+        r = pipe.process(frame)
+        if k >= warmup:
+            timings.append(r.timings_ms)
+        print(f"\rbench: frame {k + 1}/{len(indices)}", end="", file=sys.stderr, flush=True)
+    print(file=sys.stderr)
+    stages = list(timings[0])
+    L = session.lighting
+    return {
+        "device": pipe.device, "device_name": device_name(pipe.device),
+        "warp": wp.__version__, "open3d": o3d.__version__,
+        "fusion_on": str(pipe.volume._o3d_device), "recording": session.recording.path,
+        "size": f"{rec.intrinsics.width}x{rec.intrinsics.height}", "frames_timed": len(timings),
+        "stride": L.stride, "rays": L.rays, "bands": L.bands, "voxel_size": session.reconstruction.voxel_size,
+        "ray_length": L.ray_length,
+        "ms_mean": {s: round(float(np.mean([t[s] for t in timings])), 3) for s in stages},
+        "ms_p95": {s: round(float(np.percentile([t[s] for t in timings], 95)), 3) for s in stages},
+        "frames_per_s": round(1000.0 / float(np.mean([t["total"] for t in timings])), 3),
+    }
+
+
+def speed_command(args) -> int:
+    s = Session()
+    s.recording.path = args.recording
+    s.device = args.device or "auto"
+    s.frames = args.frames or "0:12"
+    s.lighting.stride, s.lighting.rays, s.lighting.bands = args.stride, args.rays, args.bands
+    if args.voxel_size:
+        s.reconstruction.voxel_size = args.voxel_size
+    if args.ray_length:
+        s.lighting.ray_length = args.ray_length
+    validate(s)
+    res = bench_recording(s, warmup=args.warmup)
+    stages = "  ".join(f"{k} {v:.1f}" for k, v in res["ms_mean"].items())
+    print(f"{res['device_name']} ({res['device']}), {res['size']} stride {res['stride']} rays {res['rays']} "
+          f"bands {res['bands']}: {res['frames_per_s']} frames/s\n  mean ms: {stages}")
+    if args.json_out:
+        write_json(args.json_out, res)
+    return 0

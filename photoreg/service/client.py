@@ -1,0 +1,289 @@
+"""Client of `photoreg serve` (protocol 1.0, docs/protocol.md) and `photoreg stream`.
+
+`connect()` opens a session (hello -> ready) over websockets' synchronous client; `send_frame()`
+returns at once and replies arrive in order through `recv()` / `poll()`, so a plain loop can keep
+several frames in flight. `replay()` streams a recording's frames through a client and collects the
+lighting records; `photoreg stream` saves them like `photoreg run` (OUT/lighting.jsonl, summary.json).
+"""
+from __future__ import annotations
+
+import json
+import os
+import signal
+import sys
+import threading
+import time
+from collections import OrderedDict
+from pathlib import Path
+from typing import Callable, Iterable
+
+import numpy as np
+from websockets.exceptions import ConnectionClosed, InvalidHandshake, InvalidURI
+from websockets.sync.client import ClientConnection
+from websockets.sync.client import connect as ws_connect
+
+from ..io.atomic import write_json
+from ..types import Frame, Intrinsics
+from .protocol import ProtocolError, decode, encode, encode_frame, hello_message, record_from_lighting
+
+
+class ServiceClosed(RuntimeError):
+    """The server closed the connection (code and reason as the server gave them)."""
+
+    def __init__(self, code: int | None, reason: str):
+        super().__init__(f"the server closed the connection (code {code}{': ' + reason if reason else ''})")
+        self.code, self.reason = code, reason
+
+
+class Client:
+    """A ready session on a photoreg server; use connect() to make one."""
+
+    def __init__(self, ws: ClientConnection, ready: dict):
+        self.ws, self.ready = ws, ready
+
+    def send_frame(self, frame: Frame, index: int | None = None, color: str = "png", depth: str = "png16") -> int:
+        """Send one frame (encodings as in protocol.encode_frame); returns the index its replies carry."""
+        index = frame.index if index is None else index
+        try:
+            self.ws.send(encode_frame(frame, index, color, depth))
+        except ConnectionClosed as e:
+            raise self._closed(e) from None
+        return index
+
+    def recv(self, timeout: float | None = None) -> dict | None:
+        """Next reply (lighting, error, bye, ...), or None when none came within `timeout` seconds."""
+        try:
+            data = self.ws.recv(timeout)
+        except TimeoutError:
+            return None
+        except ConnectionClosed as e:
+            raise self._closed(e) from None
+        return decode(data)[0]
+
+    def poll(self) -> list[dict]:
+        """Every reply that has already arrived, without waiting."""
+        replies = []
+        while (msg := self.recv(0)) is not None:
+            replies.append(msg)
+        return replies
+
+    def finish(self, timeout: float = 60.0) -> list[dict]:
+        """Say bye; returns the replies still to come, ending with the server's bye, then closes."""
+        replies: list[dict] = []
+        try:
+            self.ws.send(encode({"type": "bye"}))
+            deadline = time.monotonic() + timeout
+            while (left := deadline - time.monotonic()) > 0:
+                msg = self.recv(left)
+                if msg is None:
+                    break
+                replies.append(msg)
+                if msg["type"] == "bye":
+                    break
+        except (ConnectionClosed, ServiceClosed):
+            pass
+        self.close()
+        return replies
+
+    def close(self) -> None:
+        self.ws.close()
+
+    def __enter__(self) -> "Client":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def _closed(self, e: ConnectionClosed) -> ServiceClosed:
+        rcvd = e.rcvd
+        return ServiceClosed(rcvd.code if rcvd else None, rcvd.reason if rcvd else "no close frame")
+
+
+def connect(url: str, intrinsics: Intrinsics, options: dict | None = None, token: str | None = None,
+            timeout: float = 60.0) -> Client:
+    """Open a session: hello with the camera and options (keyed like a session file: lighting,
+    reconstruction, render, objects, track), wait for ready. An error reply raises ProtocolError."""
+    try:
+        # Entered, not called: the way to keep a connection across websockets versions; Client.close() closes it.
+        ws = ws_connect(url, open_timeout=timeout, max_size=64 * 2**20, compression=None, close_timeout=5).__enter__()
+    except (OSError, InvalidURI, InvalidHandshake, TimeoutError) as e:
+        raise RuntimeError(f"{url}: cannot connect to a photoreg server ({e})") from None
+    client = Client(ws, {})
+    try:
+        ws.send(encode(hello_message(intrinsics, options, token)))
+        reply = client.recv(timeout)
+    except Exception:
+        client.close()
+        raise
+    if reply is None or reply["type"] != "ready":
+        client.close()
+        if reply is None:
+            raise RuntimeError(f"{url}: no reply to hello within {timeout:g} s")
+        if reply["type"] == "error":
+            raise ProtocolError(reply.get("code", "internal"), reply.get("message", ""))
+        raise RuntimeError(f"{url}: expected ready, got {reply['type']!r}")
+    client.ready = reply
+    return client
+
+
+def percentiles(values_ms: list[float]) -> dict:
+    """p50/p95/p99/mean/max of latencies in ms (None when there are none)."""
+    if not values_ms:
+        return {"p50": None, "p95": None, "p99": None, "mean": None, "max": None}
+    v = np.asarray(values_ms)
+    return {"p50": round(float(np.percentile(v, 50)), 3), "p95": round(float(np.percentile(v, 95)), 3),
+            "p99": round(float(np.percentile(v, 99)), 3), "mean": round(float(v.mean()), 3),
+            "max": round(float(v.max()), 3)}
+
+
+def replay(client: Client, frames: Iterable[Frame], realtime: bool = False, window: int = 2,
+           color: str = "png", depth: str = "png16", on_record: Callable[[dict], None] | None = None,
+           reply_timeout: float = 120.0) -> dict:
+    """Stream frames through a session and collect the replies; returns the figures of summary.json.
+
+    Without `realtime`, at most `window` frames are in flight (nothing is dropped when window <= the
+    server's queue); with it, frames go out at their recording timestamps and the server drops what
+    it cannot keep up with. A frame whose reply never comes (dropped) is known when a later frame's
+    reply arrives, replies being in order. Ctrl-C (KeyboardInterrupt), the server's bye or its closing
+    the connection stop the sending; what has arrived is kept and `stopped` says why.
+    """
+    pending: OrderedDict[int, float] = OrderedDict()   # index -> send time, in send order
+    latencies, server_latencies, records, errors = [], [], [], []
+    counts = {"sent": 0, "dropped": 0}
+    bye: dict = {}
+    t_start = time.perf_counter()
+    ts0 = None
+
+    def handle(msg: dict) -> None:
+        now = time.perf_counter()
+        if msg["type"] == "lighting":
+            index = msg["frame"]
+            while pending and next(iter(pending)) != index:   # older frames without a reply were dropped
+                pending.popitem(last=False)
+                counts["dropped"] += 1
+            if pending:
+                latencies.append((now - pending.pop(index)) * 1000.0)
+            server_latencies.append(msg["latency_ms"])
+            record = record_from_lighting(msg)
+            records.append(record)
+            if on_record is not None:
+                on_record(record)
+        elif msg["type"] == "error":
+            pending.pop(msg.get("frame"), None)
+            errors.append({k: msg.get(k) for k in ("frame", "code", "message")})
+        elif msg["type"] == "bye":
+            bye.update(msg)
+
+    stopped = None   # why sending stopped early
+    try:
+        for frame in frames:
+            if realtime:
+                ts0 = frame.timestamp if ts0 is None else ts0
+                due = t_start + (frame.timestamp - ts0)
+                while (left := due - time.perf_counter()) > 0 and not bye:
+                    if (msg := client.recv(left)) is not None:
+                        handle(msg)
+            else:
+                while len(pending) >= window and not bye:
+                    msg = client.recv(reply_timeout)
+                    if msg is None:
+                        raise RuntimeError(f"no reply from the server within {reply_timeout:g} s")
+                    handle(msg)
+            for msg in client.poll():
+                handle(msg)
+            if bye:
+                stopped = f"the server said bye: {bye.get('reason')}"
+                break
+            pending[client.send_frame(frame, color=color, depth=depth)] = time.perf_counter()
+            counts["sent"] += 1
+    except KeyboardInterrupt:
+        stopped = "interrupted"
+    except ServiceClosed as e:
+        stopped = str(e)
+    if not bye:
+        for msg in client.finish(timeout=10.0 if stopped else reply_timeout):
+            handle(msg)
+    client.close()
+    counts["dropped"] += len(pending)   # never answered: dropped or cancelled at the end
+    wall = time.perf_counter() - t_start
+    stages = sorted({k for r in records for k in r["timings_ms"]})
+    return {
+        "device": client.ready.get("device"), "frames_sent": counts["sent"], "frames_processed": len(records),
+        "frames_dropped": counts["dropped"], "errors": errors, "stopped": stopped,
+        "wall_s": round(wall, 3), "frames_per_s": round(len(records) / wall, 3) if wall > 0 else None,
+        "latency_ms": percentiles(latencies), "server_latency_ms": percentiles(server_latencies),
+        "weak_frames": [r["frame"] for r in records if r["diagnostics"].get("weak")],
+        "timings_ms_mean": {k: round(float(np.mean([r["timings_ms"].get(k, 0.0) for r in records])), 3)
+                            for k in stages},
+        "server_bye": bye, "settings": client.ready.get("settings"),
+    }
+
+
+def _interrupt(signum, frame) -> None:
+    raise KeyboardInterrupt
+
+
+def stream_command(args) -> int:
+    """`photoreg stream RECORDING --url URL`: replay a recording through a server, save the replies."""
+    from ..config import parse_frames
+    from ..io.recording import iter_frames, open_recording
+    from ..runner import Progress
+
+    rec = open_recording(args.recording)
+    indices = parse_frames(args.frames or "", len(rec))
+    if not indices:
+        raise ValueError(f"{args.recording}: no frames selected (recording has {len(rec)}, --frames {args.frames!r})")
+    lighting = {k: v for k, v in (("bands", args.bands), ("rays", args.rays), ("stride", args.stride),
+                                  ("ray_length", args.ray_length)) if v is not None}
+    options: dict = {"lighting": lighting} if lighting else {}
+    if args.voxel_size is not None:
+        options["reconstruction"] = {"voxel_size": args.voxel_size}
+    if args.no_poses or not rec.has_poses:
+        options["track"] = True
+    out = Path(args.out) if args.out else None
+    skipped: list[dict] = []
+    progress = Progress(len(indices), args.quiet)
+    client = connect(args.url, rec.intrinsics, options, args.token or os.environ.get("PHOTOREG_TOKEN"))
+    frames = iter_frames(rec, indices, on_error=lambda i, msg: skipped.append({"frame": i, "error": msg}))
+    partial = None
+    if out is not None:
+        out.mkdir(parents=True, exist_ok=True)
+        partial = open(out / "lighting.jsonl.partial", "w")
+
+    def on_record(record: dict) -> None:
+        if partial is not None:
+            partial.write(json.dumps(record) + "\n")
+            partial.flush()
+        progress.step(f"frame {record['frame']}" + (" (weak)" if record["diagnostics"].get("weak") else ""))
+
+    main_thread = threading.current_thread() is threading.main_thread()
+    if main_thread:   # SIGTERM stops like Ctrl-C: what has arrived is saved
+        previous = signal.signal(signal.SIGTERM, _interrupt)
+    try:
+        summary = replay(client, frames, realtime=args.realtime, window=args.window, color=args.color,
+                         depth=args.depth, on_record=on_record)
+    finally:
+        if main_thread:
+            signal.signal(signal.SIGTERM, previous)
+        progress.close()
+        if partial is not None:
+            partial.close()
+    summary = {"recording": str(rec.path), "url": args.url, **summary, "frames_skipped": skipped}
+    if out is not None:
+        os.replace(out / "lighting.jsonl.partial", out / "lighting.jsonl")
+        write_json(out / "summary.json", summary)
+    for sk in skipped:
+        print(f"photoreg: skipped frame {sk['frame']}: {sk['error']}", file=sys.stderr)
+    for e in summary["errors"]:
+        print(f"photoreg: server error{' on frame ' + str(e['frame']) if e['frame'] is not None else ''}: "
+              f"{e['code']}: {e['message']}", file=sys.stderr)
+    lat, srv = summary["latency_ms"], summary["server_latency_ms"]
+    print(f"{summary['frames_processed']}/{summary['frames_sent']} frames answered on {summary['device']} at "
+          f"{summary['frames_per_s']} frames/s; {summary['frames_dropped']} dropped, {len(summary['errors'])} errors"
+          + (f" (stopped early: {summary['stopped']})" if summary["stopped"] else ""))
+    if lat["p50"] is not None:
+        print(f"latency ms (send to reply): p50 {lat['p50']:.1f}  p95 {lat['p95']:.1f}  p99 {lat['p99']:.1f}; "
+              f"server side p50 {srv['p50']:.1f}  p95 {srv['p95']:.1f}")
+    if out is not None:
+        print(f"outputs in {out}: lighting.jsonl, summary.json")
+    return 0 if summary["stopped"] is None else 130 if summary["stopped"] == "interrupted" else 1

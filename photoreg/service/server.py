@@ -1,0 +1,403 @@
+"""`photoreg serve`: the WebSocket service (protocol 1.0, docs/protocol.md), one pipeline per connection.
+
+A connection runs two tasks on the event loop: a reader (receive, validate, decode the images on a
+helper thread, enqueue) and a worker (run the pipeline on the connection's own thread, reply). The
+queue between them is bounded and, when a frame arrives while it is full, drops the oldest waiting
+frame ('latest wins'), so a client faster than the pipeline gets fresh answers and memory stays
+bounded: per connection at most `queue` decoded frames, one message being decoded and websockets'
+small receive buffer. A client that does not read its replies stalls only its own worker (a send
+waits for its socket); every other connection keeps its own thread and queue.
+"""
+from __future__ import annotations
+
+import asyncio
+import collections
+import hmac
+import ipaddress
+import logging
+import os
+import signal
+import threading
+import time
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+
+import cv2
+from websockets.asyncio.server import ServerConnection, serve
+from websockets.exceptions import ConnectionClosed
+from websockets.frames import CloseCode
+
+from ..device import resolve_device
+from ..pipeline import Pipeline
+from ..runner import result_record
+from ..types import Frame, Intrinsics
+from .protocol import (CLIENT_TYPES, Limits, ProtocolError, bye_message, decode, decode_frame, encode,
+                       error_message, lighting_message, parse_hello, ready_message)
+
+log = logging.getLogger("photoreg.serve")
+COUNTS = ("received", "processed", "dropped", "cancelled", "errors")   # frames, per connection and in total
+SEND_TIMEOUT = 2.0   # s: the last words (bye, errors before closing) to a client that may not be reading
+
+
+@dataclass
+class ServerConfig:
+    host: str = "127.0.0.1"
+    port: int = 8765              # 0: any free port (see PhotoregServer.port)
+    token: str | None = None      # clients must send it in hello
+    device: str = "auto"
+    max_clients: int = 4
+    queue: int = 2                # frames waiting per connection before the oldest is dropped
+    idle_timeout: float = 300.0   # s without a message (and no frame in work) before closing; <= 0: never
+    shutdown_timeout: float = 10.0  # s to finish in-flight frames on shutdown
+    block_count: int = 4000       # initial TSDF hash capacity per session (80 KB per block, grows when full):
+                                  # the memory a connection costs, so the server's to choose, not the client's
+    limits: Limits = field(default_factory=Limits)
+
+    def __post_init__(self) -> None:
+        if self.max_clients < 1 or self.queue < 1:
+            raise ValueError(f"--max-clients and --queue must be >= 1, got {self.max_clients} and {self.queue}")
+
+
+@dataclass
+class _Queued:
+    frame: Frame
+    received: float   # time.perf_counter() when the message arrived
+
+
+def is_loopback(host: str) -> bool:
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
+
+
+async def last_words(ws: ServerConnection, msg: dict, code: int, reason: str) -> None:
+    """A final message, then the closing handshake; never waits long on a client that does not read."""
+    try:
+        await asyncio.wait_for(ws.send(encode(msg)), SEND_TIMEOUT)
+        await ws.close(code, reason)
+    except (ConnectionClosed, TimeoutError):
+        pass
+
+
+class Connection:
+    """One client: its session (after hello), its queue, its pipeline thread."""
+
+    def __init__(self, server: "PhotoregServer", ws: ServerConnection):
+        self.server, self.ws, self.cfg = server, ws, server.config
+        self.queue: collections.deque[_Queued] = collections.deque(maxlen=self.cfg.queue)
+        self.wake = asyncio.Event()      # the queue has work
+        self.idle = asyncio.Event()      # nothing queued and nothing in the pipeline
+        self.idle.set()
+        self.executor = ThreadPoolExecutor(1, thread_name_prefix="photoreg-conn")
+        self.pipeline: Pipeline | None = None
+        self.intrinsics: Intrinsics | None = None
+        self.stop_reason: str | None = None
+        self.reader: asyncio.Task | None = None
+        self.counts = collections.Counter()  # of COUNTS
+
+    def stop(self, reason: str) -> None:
+        """Server shutdown: stop reading; run() finishes the frame in work and says bye."""
+        self.stop_reason = reason
+        if self.reader is not None:
+            self.reader.cancel()
+
+    async def run(self) -> None:
+        """Serve until bye, disconnect, idle timeout, refused token or shutdown; then release everything."""
+        self.reader = asyncio.create_task(self._read())
+        worker = asyncio.create_task(self._work())
+        try:
+            await asyncio.wait({self.reader})
+            ending = "shutdown" if self.reader.cancelled() else self.reader.result()
+            if ending == "bye":
+                await self._wait_idle(None)
+                await last_words(self.ws, bye_message("client said bye", **self.stats()),
+                                 CloseCode.NORMAL_CLOSURE, "bye")
+            elif ending == "shutdown":
+                self.counts["cancelled"] += len(self.queue)
+                self.queue.clear()
+                await self._wait_idle(self.cfg.shutdown_timeout)
+                await last_words(self.ws, bye_message(self.stop_reason, **self.stats()),
+                                 CloseCode.GOING_AWAY, self.stop_reason)
+            elif ending == "idle":
+                await last_words(self.ws, error_message("idle_timeout", f"no message for {self.cfg.idle_timeout:g} "
+                                                                        "s: closing the connection"),
+                                 CloseCode.NORMAL_CLOSURE, "idle timeout")
+            elif ending == "unauthorized":
+                await last_words(self.ws, error_message("unauthorized", "missing or wrong token"),
+                                 CloseCode.POLICY_VIOLATION, "unauthorized")
+        finally:
+            worker.cancel()
+            self.queue.clear()
+            # Hold the client slot until the pipeline thread is free, so that clients that connect and drop
+            # cannot pile up threads beyond max_clients (bounded by the shutdown timeout when stopping).
+            wait = asyncio.to_thread(self.executor.shutdown, True)
+            try:
+                await asyncio.wait_for(wait, self.cfg.shutdown_timeout if self.stop_reason else None)
+            except TimeoutError:
+                log.warning("%s: pipeline thread still busy after %.0f s; leaving it", self.peer,
+                            self.cfg.shutdown_timeout)
+
+    @property
+    def peer(self) -> str:
+        addr = self.ws.remote_address
+        return f"{addr[0]}:{addr[1]}" if addr else "client"
+
+    def stats(self) -> dict:
+        c = self.counts
+        return {"frames_received": c["received"], "frames_processed": c["processed"], "dropped": c["dropped"],
+                "cancelled": c["cancelled"], "errors": c["errors"]}
+
+    async def _wait_idle(self, timeout: float | None) -> None:
+        try:
+            await asyncio.wait_for(self.idle.wait(), timeout)
+        except TimeoutError:
+            log.warning("%s: frame still in work after %.0f s; closing without its reply", self.peer, timeout)
+
+    async def _send(self, msg: dict) -> None:
+        await self.ws.send(encode(msg))
+
+    # --------------------------------------------------------------------------------------- reader
+
+    async def _read(self) -> str:
+        """Handle messages until the connection ends; returns why: bye, closed, idle, unauthorized or shutdown.
+        stop() cancels this task; the flag covers a cancellation that asyncio.wait_for swallows when the
+        message arrives at the same moment (Python < 3.12)."""
+        idle_timeout = self.cfg.idle_timeout if self.cfg.idle_timeout > 0 else None
+        while self.stop_reason is None:
+            try:
+                data = await asyncio.wait_for(self.ws.recv(), idle_timeout)
+            except TimeoutError:
+                if not self.idle.is_set():
+                    continue  # the client waits for frames still in work: not idle
+                return "idle"
+            except ConnectionClosed:
+                return "closed"
+            received = time.perf_counter()
+            try:
+                header, payload = decode(data)
+                kind = header["type"]
+                if kind == "hello":
+                    if await self._hello(header) == "unauthorized":
+                        return "unauthorized"
+                elif kind == "frame":
+                    await self._frame(header, payload, received)
+                elif kind == "bye":
+                    return "bye"
+                else:
+                    raise ProtocolError("unknown_type", f"unknown message type {kind!r:.60}: a client sends "
+                                                        f"{', '.join(CLIENT_TYPES)}")
+            except ProtocolError as e:
+                self.counts["errors"] += 1
+                try:
+                    await self._send(e.to_message())
+                except ConnectionClosed:
+                    return "closed"
+            except ConnectionClosed:
+                return "closed"
+            except Exception as e:  # a bug here must not take the connection, let alone the server, down
+                log.exception("%s: unexpected error handling a message", self.peer)
+                self.counts["errors"] += 1
+                try:
+                    await self._send(error_message("internal", f"server error while handling the message: {e}"))
+                except ConnectionClosed:
+                    return "closed"
+        return "shutdown"
+
+    async def _hello(self, header: dict) -> str | None:
+        if self.pipeline is not None:
+            raise ProtocolError("already_ready", "hello was already accepted on this connection: open a new "
+                                                 "connection for another session")
+        token = self.cfg.token
+        if token is not None:
+            given = header.get("token")
+            if not isinstance(given, str) or not hmac.compare_digest(given.encode(), token.encode()):
+                log.warning("%s: refused: missing or wrong token", self.peer)
+                return "unauthorized"
+        hello = parse_hello(header, self.server.device, self.cfg.limits)
+        hello.session.reconstruction.block_count = self.cfg.block_count
+        loop = asyncio.get_running_loop()
+        try:
+            self.pipeline = await loop.run_in_executor(self.executor, Pipeline, hello.session, hello.intrinsics)
+        except Exception as e:
+            log.exception("%s: could not start a pipeline", self.peer)
+            raise ProtocolError("pipeline", f"could not start the pipeline: {e}") from None
+        self.intrinsics = hello.intrinsics
+        k = hello.intrinsics
+        log.info("%s: session started (%dx%d, bands %d, rays %d, stride %d)", self.peer, k.width, k.height,
+                 hello.session.lighting.bands, hello.session.lighting.rays, hello.session.lighting.stride)
+        await self._send(ready_message(hello, self.server.device, self.cfg.queue, self.cfg.limits))
+        return None
+
+    async def _frame(self, header: dict, payload: memoryview, received: float) -> None:
+        if self.pipeline is None:
+            raise ProtocolError("not_ready", "frame before hello: send hello first")
+        self.counts["received"] += 1
+        frame = await asyncio.to_thread(decode_frame, header, payload, self.intrinsics, self.counts["received"] - 1)
+        if len(self.queue) == self.queue.maxlen:
+            self.counts["dropped"] += 1    # the deque drops its oldest entry on append
+        self.queue.append(_Queued(frame, received))
+        self.idle.clear()
+        self.wake.set()
+
+    # --------------------------------------------------------------------------------------- worker
+
+    async def _work(self) -> None:
+        """Process queued frames one at a time on the connection's thread and reply to each."""
+        loop = asyncio.get_running_loop()
+        try:
+            while True:
+                if not self.queue:
+                    self.idle.set()
+                    self.wake.clear()
+                    await self.wake.wait()
+                    continue
+                item = self.queue.popleft()
+                index = item.frame.index
+                started = time.perf_counter()
+                try:
+                    result = await loop.run_in_executor(self.executor, self.pipeline.process, item.frame)
+                    msg = lighting_message(result_record(result), self.counts["dropped"],
+                                           (time.perf_counter() - item.received) * 1000.0,
+                                           (started - item.received) * 1000.0)
+                    text = encode(msg)
+                except Exception as e:
+                    log.warning("%s: frame %d failed: %s", self.peer, index, e)
+                    self.counts["errors"] += 1
+                    await self._send(error_message("pipeline", f"frame {index}: {e}", index))
+                    continue
+                self.counts["processed"] += 1
+                await self.ws.send(text)
+        except ConnectionClosed:
+            pass
+
+
+class PhotoregServer:
+    """The WebSocket server: accepts connections up to max_clients, shuts down gracefully."""
+
+    def __init__(self, config: ServerConfig):
+        self.config = config
+        self.device = ""
+        self.connections: dict[Connection, asyncio.Task] = {}
+        self.closing = False
+        self.totals = collections.Counter()   # over finished connections
+        self._ws_server = None
+
+    async def start(self) -> None:
+        cfg = self.config
+        self.device = resolve_device(cfg.device)   # also initialises Warp once, before any pipeline thread
+        if not is_loopback(cfg.host):
+            log.warning("listening on %s, reachable from other machines%s", cfg.host,
+                        "" if cfg.token else " without a token (set --token or PHOTOREG_TOKEN)")
+        self._ws_server = await serve(self._handle, cfg.host, cfg.port, max_size=cfg.limits.max_message_bytes,
+                                      max_queue=4, compression=None, close_timeout=SEND_TIMEOUT)
+
+    @property
+    def port(self) -> int:
+        return self._ws_server.sockets[0].getsockname()[1]
+
+    @property
+    def url(self) -> str:
+        host = self.config.host
+        return f"ws://{f'[{host}]' if ':' in host else host}:{self.port}"
+
+    def stats(self) -> dict:
+        """Totals over finished connections plus the live ones (safe to call from another thread)."""
+        total = collections.Counter(self.totals)
+        for conn in list(self.connections):
+            total.update(conn.counts)
+        return {"connections": len(self.connections), **{k: total[k] for k in COUNTS}}
+
+    async def _handle(self, ws: ServerConnection) -> None:
+        if self.closing or len(self.connections) >= self.config.max_clients:
+            error, text, close_code = (("shutting_down", "the server is shutting down", CloseCode.GOING_AWAY)
+                                       if self.closing else
+                                       ("too_many_clients", f"the server already serves {self.config.max_clients} "
+                                                            "client(s): try again later", CloseCode.TRY_AGAIN_LATER))
+            await last_words(ws, error_message(error, text), close_code, error)
+            return
+        conn = Connection(self, ws)
+        self.connections[conn] = asyncio.current_task()
+        log.info("%s: connected (%d/%d)", conn.peer, len(self.connections), self.config.max_clients)
+        try:
+            await conn.run()
+        finally:
+            del self.connections[conn]
+            self.totals.update(conn.counts)
+            s = conn.stats()
+            log.info("%s: closed after %d frames (%d processed, %d dropped, %d errors)", conn.peer,
+                     s["frames_received"], s["frames_processed"], s["dropped"], s["errors"])
+
+    async def shutdown(self, reason: str = "server shutting down") -> None:
+        """Refuse new clients, finish each connection's frame in work, say bye, close with 1001."""
+        self.closing = True
+        tasks = list(self.connections.values())
+        for conn in list(self.connections):
+            conn.stop(reason)
+        if tasks:
+            await asyncio.wait(tasks, timeout=self.config.shutdown_timeout + 2 * SEND_TIMEOUT + 1)
+        self._ws_server.close(close_connections=True, code=CloseCode.GOING_AWAY, reason=reason)
+        await self._ws_server.wait_closed()
+
+
+class ServerThread:
+    """A PhotoregServer on its own event loop in a background thread (tests, embedding in sync programs)."""
+
+    def __init__(self, config: ServerConfig):
+        self.server = PhotoregServer(config)
+        self._loop = asyncio.new_event_loop()
+        self._thread = threading.Thread(target=self._loop.run_forever, name="photoreg-serve", daemon=True)
+
+    def start(self) -> str:
+        """Start listening; returns the ws:// URL."""
+        self._thread.start()
+        asyncio.run_coroutine_threadsafe(self.server.start(), self._loop).result()
+        return self.server.url
+
+    def stop(self, reason: str = "server shutting down") -> None:
+        try:
+            asyncio.run_coroutine_threadsafe(self.server.shutdown(reason), self._loop).result()
+        finally:
+            self._loop.call_soon_threadsafe(self._loop.stop)
+            self._thread.join()
+            self._loop.close()
+
+    def __enter__(self) -> "ServerThread":
+        self.start()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.stop()
+
+
+async def serve_until_signal(config: ServerConfig) -> dict:
+    """Serve until SIGINT or SIGTERM, then shut down gracefully; returns the server's totals."""
+    server = PhotoregServer(config)
+    await server.start()
+    stop = asyncio.Event()
+    loop = asyncio.get_running_loop()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        loop.add_signal_handler(sig, stop.set)
+    print(f"photoreg serve: listening on {server.url} (device {server.device}, up to {config.max_clients} clients, "
+          f"queue {config.queue}, token {'required' if config.token else 'off'})", flush=True)
+    await stop.wait()
+    log.info("signal received: finishing frames in work and closing connections")
+    await server.shutdown()
+    return server.stats()
+
+
+def serve_command(args) -> int:
+    """`photoreg serve`: run the service until SIGINT/SIGTERM."""
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s photoreg serve: %(message)s")
+    logging.getLogger("websockets").setLevel(logging.WARNING)   # our own lines say who came and went
+    cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_ERROR)   # clients' corrupt images get error replies
+    config = ServerConfig(host=args.host, port=args.port, token=args.token or os.environ.get("PHOTOREG_TOKEN"),
+                          device=args.device, max_clients=args.max_clients, queue=args.queue,
+                          idle_timeout=args.idle_timeout,
+                          limits=Limits(max_message_bytes=int(args.max_message_mb * 2**20)))
+    totals = asyncio.run(serve_until_signal(config))
+    print(f"photoreg serve: stopped after {totals['processed']} frames ({totals['dropped']} dropped, "
+          f"{totals['errors']} errors)", flush=True)
+    return 0

@@ -1,0 +1,144 @@
+"""`photoreg batch` end to end with real pipelines on a tiny synthetic recording (64x48, 16 rays, 2 bands):
+validation before any work, a failing session beside two good ones (local pool and Ray), the summary and
+report, --resume doing no work, an edited session file running again."""
+from __future__ import annotations
+
+import json
+import shutil
+import sys
+from pathlib import Path
+
+import pytest
+from scenes import write_recording
+
+from photoreg.cli import main
+from photoreg.types import Intrinsics
+
+K = Intrinsics(64, 48, 56.0, 56.0, 31.5, 23.5, 5000.0)
+FRAMES = 3
+
+
+def write_session(folder: Path, name: str, recording: Path, **extra_top: str) -> Path:
+    """sessions/NAME.toml: first FRAMES frames of `recording` on the CPU with tiny settings, output out/NAME."""
+    top = "".join(f"{k} = {v}\n" for k, v in extra_top.items())
+    path = folder / "sessions" / f"{name}.toml"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(f'frames = "0:{FRAMES}"\ndevice = "cpu"\n{top}\n[recording]\npath = "{recording}"\n\n'
+                    '[lighting]\nbands = 2\nrays = 16\nstride = 4\n\n[reconstruction]\nvoxel_size = 0.02\n\n'
+                    f'[output]\ndir = "../out/{name}"\npictures_every = 0\n')
+    return path
+
+
+@pytest.fixture(scope="module")
+def recording(tmp_path_factory) -> Path:
+    return write_recording(tmp_path_factory.mktemp("rec") / "scene", K, FRAMES + 1)
+
+
+@pytest.fixture
+def three_sessions(tmp_path, recording) -> tuple[list[Path], Path]:
+    """Sessions a and b on the good recording; 'broken' on a copy whose intrinsics.json is corrupt, which
+    load_session accepts (the folder exists) but the run refuses."""
+    broken_rec = tmp_path / "broken_rec"
+    shutil.copytree(recording, broken_rec)
+    (broken_rec / "intrinsics.json").write_text("{not json")
+    paths = [write_session(tmp_path, "a", recording), write_session(tmp_path, "broken", broken_rec),
+             write_session(tmp_path, "b", recording)]
+    return paths, tmp_path / "report"
+
+
+def mtimes(folder: Path) -> dict[str, int]:
+    return {str(p.relative_to(folder)): p.stat().st_mtime_ns for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
+def check_three_session_run(tmp_path: Path, report: Path, capsys) -> dict:
+    """The good sessions complete with scored outputs, the broken one is reported with its error."""
+    summary = json.loads((report / "batch_summary.json").read_text())
+    by_name = {r["name"]: r for r in summary["sessions"]}
+    assert [r["name"] for r in summary["sessions"]] == ["a", "broken", "b"]
+    assert summary["counts"] == {"ok": 2, "failed": 1, "skipped": 0}
+    broken = by_name["broken"]
+    assert broken["status"] == "failed" and "intrinsics.json" in broken["error"]
+    assert "open_recording" in broken["traceback"] and not (tmp_path / "out" / "broken" / ".complete").exists()
+    for name in ("a", "b"):
+        r, out = by_name[name], tmp_path / "out" / name
+        assert r["status"] == "ok" and r["error"] is None and r["device"] == "cpu"
+        assert r["frames"] == FRAMES and r["frames_per_s"] > 0 and r["wall_s"] > 0
+        assert r["accuracy"]["n_scored"] == FRAMES
+        assert r["accuracy"]["metrics"]["irradiance_si_rmse_sphere"]["median"] >= 0
+        assert len((out / "lighting.jsonl").read_text().splitlines()) == FRAMES
+        assert json.loads((out / "summary.json").read_text())["frames_processed"] == FRAMES
+        assert (out / ".complete").is_file()
+    md = (report / "batch_report.md").read_text()
+    assert "| a | ok | cpu | 3 |" in md and "| broken | failed |" in md and "## Failures" in md
+    assert (report / "batch_speed_vs_error.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    err = capsys.readouterr().err
+    assert "[3/3]" in err and f"a: frame {FRAMES}/{FRAMES}" in err and "failed broken" in err
+    return by_name
+
+
+def test_local_batch_failure_resume_and_changed_session(three_sessions, tmp_path, capsys):
+    paths, report = three_sessions
+    args = ["batch", *map(str, paths), "--workers", "2", "--out", str(report)]
+    assert main(args) == 1
+    check_three_session_run(tmp_path, report, capsys)
+
+    # --resume over the complete sessions: nothing runs, nothing is rewritten
+    good = [str(paths[0]), str(paths[2])]
+    before = mtimes(tmp_path / "out")
+    assert main(["batch", *good, "--resume", "--out", str(report)]) == 0
+    assert mtimes(tmp_path / "out") == before
+    summary = json.loads((report / "batch_summary.json").read_text())
+    assert [r["status"] for r in summary["sessions"]] == ["skipped", "skipped"]
+    assert summary["sessions"][0]["frames"] == FRAMES and summary["sessions"][0]["accuracy"] is not None
+    assert "skipped a" in capsys.readouterr().err
+
+    # an edited session file runs again under --resume; the unchanged one stays skipped
+    paths[2].write_text(paths[2].read_text() + "# edited\n")
+    assert main(["batch", *good, "--resume", "--out", str(report)]) == 0
+    summary = json.loads((report / "batch_summary.json").read_text())
+    assert [r["status"] for r in summary["sessions"]] == ["skipped", "ok"]
+    assert mtimes(tmp_path / "out" / "a") == {k[2:]: v for k, v in before.items() if k.startswith("a/")}
+
+
+def test_invalid_sessions_reported_before_any_work(tmp_path, recording, capsys):
+    good = write_session(tmp_path, "good", recording)
+    unknown = write_session(tmp_path, "unknown", recording, colour='"red"')
+    wrong_type = write_session(tmp_path, "wrong_type", recording)
+    wrong_type.write_text(wrong_type.read_text().replace("rays = 16", 'rays = "many"'))
+    missing = write_session(tmp_path, "missing", tmp_path / "no_such_recording")
+    twin = write_session(tmp_path, "twin", recording)
+    twin.write_text(twin.read_text().replace("out/twin", "out/good"))
+    report = tmp_path / "report"
+    args = ["batch", *map(str, [good, unknown, wrong_type, missing, twin]), "--out", str(report)]
+    assert main(args) == 2
+    err = capsys.readouterr().err
+    assert "4 problem(s)" in err
+    assert f"{unknown}: unknown section or key 'colour'" in err
+    assert f"{wrong_type}: key 'lighting.rays' must be int" in err
+    assert f"{missing}: recording.path" in err and "does not exist" in err
+    assert f"{twin}: output.dir" in err and str(good) in err
+    assert not (tmp_path / "out").exists() and not report.exists()
+
+
+def test_option_errors(tmp_path, recording, capsys, monkeypatch):
+    s = str(write_session(tmp_path, "a", recording))
+    assert main(["batch", s, "--workers", "0"]) == 2
+    assert main(["batch", s, "--ray-address", "auto"]) == 2
+    monkeypatch.setitem(sys.modules, "ray", None)   # as if Ray were not installed
+    assert main(["batch", s, "--executor", "ray", "--out", str(tmp_path / "report")]) == 2
+    err = capsys.readouterr().err
+    assert "--workers must be >= 1" in err and "--ray-address needs --executor ray" in err
+    assert "pip install 'photoreg[ray]'" in err and not (tmp_path / "out").exists()
+
+
+@pytest.mark.slow
+def test_ray_batch_retries_failure_once(three_sessions, tmp_path, capsys):
+    ray = pytest.importorskip("ray", reason="Ray is not installed (extra 'ray': pip install 'photoreg[ray]')")
+    paths, report = three_sessions
+    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
+    try:
+        assert main(["batch", *map(str, paths), "--executor", "ray", "--out", str(report)]) == 1
+    finally:
+        ray.shutdown()
+    by_name = check_three_session_run(tmp_path, report, capsys)
+    assert by_name["broken"]["attempts"] == 2 and by_name["a"]["attempts"] == 1

@@ -1,0 +1,499 @@
+"""The WebSocket service (photoreg.service): protocol unit tests, then the real server on loopback with real
+pipelines on a small analytic recording (tests/scenes.py, 80x60, few rays): replay equals the direct pipeline,
+concurrent and misbehaving clients, malformed messages (hypothesis), limits, shutdown, a load figure."""
+from __future__ import annotations
+
+import gc
+import json
+import os
+import re
+import signal
+import socket
+import struct
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+from websockets.exceptions import ConnectionClosed
+from websockets.sync.client import connect as ws_connect
+
+from photoreg.cli import main
+from photoreg.config import Session
+from photoreg.io.recording import open_recording
+from photoreg.pipeline import Pipeline
+from photoreg.service.client import Client, ServiceClosed, connect, replay
+from photoreg.service.protocol import (CLIENT_TYPES, ERROR_CODES, Limits, ProtocolError, decode, decode_frame, encode,
+                                       encode_frame, hello_message, lighting_message, parse_hello,
+                                       record_from_lighting)
+from photoreg.service.server import ServerConfig, ServerThread
+from photoreg.types import Frame, Intrinsics
+from scenes import write_recording
+
+REPO = Path(__file__).resolve().parents[1]
+K = Intrinsics(80, 60, 70.0, 70.0, 39.5, 29.5, 5000.0)
+OPTIONS = {"lighting": {"bands": 2, "rays": 16, "stride": 4}, "reconstruction": {"voxel_size": 0.02}}
+STREAM_ARGS = ["--bands", "2", "--rays", "16", "--stride", "4", "--voxel-size", "0.02", "--quiet"]
+N_FRAMES = 6
+N_FLOOD = 800   # frames the slow client sends
+
+
+@pytest.fixture(scope="module")
+def recording(tmp_path_factory) -> Path:
+    return write_recording(tmp_path_factory.mktemp("rec") / "scene", K, N_FRAMES)
+
+
+def first_frame(recording: Path) -> Frame:
+    return open_recording(recording).frame(0)
+
+
+# ------------------------------------------------------------------------------------------ protocol
+
+def test_frame_encodings_round_trip(recording):
+    """Every colour/depth encoding decodes to the frame sent (lossless ones exactly)."""
+    frame = first_frame(recording)
+    for color in ("png", "rgb8", "jpeg"):
+        for depth in ("png16", "u16", "f32"):
+            header, payload = decode(encode_frame(frame, 7, color, depth))
+            got = decode_frame(header, payload, K, default_index=0)
+            assert (got.index, got.timestamp) == (7, frame.timestamp)
+            np.testing.assert_array_equal(got.pose, frame.pose)
+            np.testing.assert_array_equal(got.depth, frame.depth)
+            if color == "jpeg":
+                assert np.abs(got.color.astype(int) - frame.color).mean() < 3
+            else:
+                np.testing.assert_array_equal(got.color, frame.color)
+
+
+def test_text_messages_round_trip():
+    hello = parse_hello(decode(encode(hello_message(K, OPTIONS, "tok")))[0], "cpu", Limits())
+    assert hello.intrinsics == K and hello.token == "tok" and hello.version == "1.0"
+    assert (hello.session.lighting.bands, hello.session.lighting.rays, hello.session.lighting.stride) == (2, 16, 4)
+    assert hello.session.reconstruction.voxel_size == 0.02 and hello.session.device == "cpu"
+    record = {"frame": 3, "timestamp": 1.5, "bands": 1, "sh": [[1.0]] * 3, "dominant_direction": [0, 0, 1],
+              "diagnostics": {"weak": False}, "timings_ms": {"total": 2.0}}
+    msg = decode(encode(lighting_message(record, 4, 12.3456, 1.0)))[0]
+    assert msg["type"] == "lighting" and msg["dropped"] == 4 and msg["latency_ms"] == 12.346
+    assert record_from_lighting(msg) == record
+
+
+def test_objects_accepted_but_not_composited():
+    obj = {"mesh": "bunny", "position": [0, 0, 0], "rotation": [0, 0, 90], "scale": 0.1, "albedo": [0.8, 0.8, 0.8]}
+    hello = parse_hello(hello_message(K, {"objects": [obj], "render": {"shadows": "shadowmap"}}), "cpu", Limits())
+    assert len(hello.session.objects) == 1 and "not composited" in hello.notes[0]
+
+
+def raw_message(header: dict, payload: bytes) -> bytes:
+    """The binary framing as docs/protocol.md gives it, written independently of protocol.encode
+    (and letting NaN through, as a careless client's JSON library might)."""
+    head = json.dumps(header).encode()
+    return struct.pack(">I", len(head)) + head + payload
+
+
+def _frame_msg(recording, **changes) -> bytes:
+    """A frame message with header fields replaced (None deletes a field)."""
+    header, payload = decode(encode_frame(first_frame(recording)))
+    for key, value in changes.items():
+        if value is None:
+            del header[key]
+        else:
+            header[key] = value
+    return raw_message(header, bytes(payload))
+
+
+def _png(img: np.ndarray) -> bytes:
+    return cv2.imencode(".png", img)[1].tobytes()
+
+
+def _frame_with(recording, color=None, depth=None) -> bytes:
+    """A frame message whose colour or depth payload is replaced by (encoding, bytes)."""
+    frame = first_frame(recording)
+    cbytes = color[1] if color else _png(cv2.cvtColor(frame.color, cv2.COLOR_RGB2BGR))
+    dbytes = depth[1] if depth else _png((frame.depth * K.depth_scale).astype(np.uint16))
+    header = {"type": "frame", "timestamp": 1.0, "color": {"encoding": color[0] if color else "png", "offset": 0,
+                                                           "length": len(cbytes)},
+              "depth": {"encoding": depth[0] if depth else "png16", "offset": len(cbytes), "length": len(dbytes)}}
+    return encode(header, cbytes + dbytes)
+
+
+BAD_HELLOS = [
+    ({"version": "2.0"}, "version"),
+    ({"version": 1}, "bad_field"),
+    ({"intrinsics": None}, "missing_field"),
+    ({"intrinsics": {**K.to_json(), "width": 100000, "height": 100000}}, "too_large"),
+    ({"intrinsics": {**K.to_json(), "fx": float("nan")}}, "bad_field"),
+    ({"intrinsics": {**K.to_json(), "width": 80.5}}, "bad_field"),
+    ({"options": {"lighting": {"rays": 100000}}}, "too_large"),
+    ({"options": {"lighting": {"bands": 0}}}, "bad_field"),
+    ({"options": {"lighting": {"colour": 1}}}, "bad_field"),
+    ({"options": {"reconstruction": {"block_count": 10**9}}}, "bad_field"),
+    ({"options": {"reconstruction": {"voxel_size": 0.001}}}, "too_large"),
+    ({"options": {"reconstruction": {"trunc_voxels": 1e6}}}, "too_large"),
+    ({"options": {"objects": [{"mesh": "x", "scale": -1.0}]}}, "bad_field"),
+    ({"options": {"track": "yes"}}, "bad_field"),
+    ({"options": []}, "bad_field"),
+]
+
+
+@pytest.mark.parametrize("change,code", BAD_HELLOS)
+def test_bad_hello_names_the_problem(change, code):
+    msg = hello_message(K, {})
+    for key, value in change.items():
+        if value is None:
+            del msg[key]
+        else:
+            msg[key] = value
+    with pytest.raises(ProtocolError) as e:
+        parse_hello(msg, "cpu", Limits())
+    assert e.value.code == code and e.value.message
+
+
+def _bad_frames(recording) -> list[tuple[bytes | str, str]]:
+    frame = first_frame(recording)
+    pose = frame.pose.tolist()
+    png = _png(cv2.cvtColor(frame.color, cv2.COLOR_RGB2BGR))
+    big_jpeg = cv2.imencode(".jpg", np.zeros((16, 16, 3), np.uint8))[1].tobytes()
+    big_jpeg = big_jpeg.replace(b"\xff\xc0\x00\x11\x08\x00\x10\x00\x10", b"\xff\xc0\x00\x11\x08\xff\xff\xff\xff")
+    return [
+        (b"\x00\x00", "bad_message"),
+        (b"\x00\x00\xff\xff{}", "bad_message"),
+        ("not json", "bad_message"),
+        ("[1, 2]", "bad_message"),
+        ('{"index": 1}', "missing_field"),
+        (_frame_msg(recording, timestamp=None), "missing_field"),
+        (_frame_msg(recording, timestamp="noon"), "bad_field"),
+        (_frame_msg(recording, index=-1), "bad_field"),
+        (_frame_msg(recording, pose=[[float("nan")] * 4] * 4), "bad_field"),   # NaN survives JSON as NaN
+        (_frame_msg(recording, pose=[[2, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]), "bad_field"),
+        (_frame_msg(recording, pose=pose[:3]), "bad_field"),
+        (_frame_msg(recording, color={"encoding": "bmp", "offset": 0, "length": 1}), "bad_field"),
+        (_frame_msg(recording, color={"encoding": "png", "offset": 0, "length": 10**9}), "bad_field"),
+        (_frame_msg(recording, depth={"encoding": "f32", "offset": 0, "length": 4}), "bad_field"),
+        (_frame_with(recording, color=("rgb8", b"\x00" * 10)), "bad_field"),
+        (_frame_with(recording, color=("png", png[:40])), "bad_image"),
+        (_frame_with(recording, color=("png", b"\x89PNG garbage" * 10)), "bad_image"),
+        (_frame_with(recording, color=("png", _png(np.zeros((10, 10, 3), np.uint8)))), "bad_image"),
+        (_frame_with(recording, color=("jpeg", big_jpeg)), "bad_image"),
+        (_frame_with(recording, depth=("png16", _png(np.zeros((60, 80), np.uint8)))), "bad_image"),
+        (_frame_with(recording, depth=("png16", png)), "bad_image"),
+    ]
+
+
+def test_bad_frames_name_the_problem(recording):
+    for data, code in _bad_frames(recording):
+        with pytest.raises(ProtocolError) as e:
+            header, payload = decode(data)
+            decode_frame(header, payload, K, default_index=0)
+        assert e.value.code == code, (data[:80], e.value)
+
+
+# ------------------------------------------------------------------------------------------ live server
+
+@pytest.fixture(scope="module")
+def server():
+    """The real server on a free loopback port, in a background thread, CPU pipelines."""
+    with ServerThread(ServerConfig(port=0, device="cpu", max_clients=8, queue=2, idle_timeout=60)) as running:
+        yield running
+
+
+def stream(recording: Path, url: str, out: Path, *extra: str) -> tuple[list[dict], dict]:
+    """`photoreg stream` into `out`; returns its lighting.jsonl records and summary."""
+    assert main(["stream", str(recording), "--url", url, "--out", str(out), *STREAM_ARGS, *extra]) == 0
+    records = [json.loads(line) for line in (out / "lighting.jsonl").read_text().splitlines()]
+    return records, json.loads((out / "summary.json").read_text())
+
+
+def direct_lighting(recording: Path) -> list[np.ndarray]:
+    """SH of every frame from photoreg.pipeline.Pipeline run in-process on the same settings."""
+
+    s = Session(device="cpu")
+    s.lighting.bands, s.lighting.rays, s.lighting.stride = 2, 16, 4
+    s.reconstruction.voxel_size, s.reconstruction.block_count = 0.02, ServerConfig().block_count
+    rec = open_recording(recording)
+    pipe = Pipeline(s, rec.intrinsics)
+    return [pipe.process(frame).lighting.sh for frame in rec]
+
+
+def test_replay_matches_direct_pipeline(server, recording, tmp_path):
+    records, summary = stream(recording, server.server.url, tmp_path / "out")
+    assert [r["frame"] for r in records] == list(range(N_FRAMES))
+    assert summary["frames_dropped"] == 0 and not summary["errors"] and summary["stopped"] is None
+    assert summary["latency_ms"]["p95"] > 0 and summary["device"] == "cpu"
+    for r, sh in zip(records, direct_lighting(recording)):
+        assert set(r) == {"frame", "timestamp", "bands", "sh", "dominant_direction", "diagnostics", "timings_ms"}
+        np.testing.assert_allclose(r["sh"], sh, atol=2e-7)
+
+
+def test_four_concurrent_clients(server, recording, tmp_path):
+    results: dict[int, tuple] = {}
+
+    def one(k: int) -> None:
+        results[k] = stream(recording, server.server.url, tmp_path / f"c{k}")
+
+    threads = [threading.Thread(target=one, args=(k,)) for k in range(4)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(120)
+    assert sorted(results) == [0, 1, 2, 3]
+    reference = results[0][0]
+    for records, summary in results.values():
+        assert summary["frames_processed"] == N_FRAMES and not summary["errors"]
+        for a, b in zip(records, reference):
+            np.testing.assert_allclose(a["sh"], b["sh"], atol=2e-7)   # separate sessions, same answers
+
+
+def wait_for(predicate, timeout: float = 30.0) -> None:
+    deadline = time.monotonic() + timeout
+    while not predicate():
+        assert time.monotonic() < deadline, "condition not reached in time"
+        time.sleep(0.05)
+
+
+def test_client_disconnecting_mid_frame(server, recording):
+    frame = first_frame(recording)
+    before = server.server.stats()["received"]
+    # 1. Gone while its frame is in the pipeline.
+    c = connect(server.server.url, K, OPTIONS)
+    c.send_frame(frame)
+    c.ws.socket.close()
+    # 2. Gone in the middle of a WebSocket message: a handshake, then half of a 1000-byte masked frame.
+    port = server.server.port
+    with socket.create_connection(("127.0.0.1", port)) as s:
+        s.sendall(f"GET / HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\nUpgrade: websocket\r\nConnection: Upgrade\r\n"
+                  "Sec-WebSocket-Key: dGhlIHNhbXBsZSBub25jZQ==\r\nSec-WebSocket-Version: 13\r\n\r\n".encode())
+        assert b" 101 " in s.recv(4096)
+        s.sendall(b"\x82\xfe" + struct.pack(">H", 1000) + b"abcd" + b"x" * 500)
+    wait_for(lambda: server.server.stats()["connections"] == 0)
+    assert server.server.stats()["received"] == before + 1   # the half message never counted
+    with connect(server.server.url, K, OPTIONS) as c:   # the server carries on
+        c.send_frame(frame)
+        assert c.recv(60)["type"] == "lighting"
+
+
+def rss_mb() -> float:
+    for line in Path("/proc/self/status").read_text().splitlines():
+        if line.startswith("VmRSS:"):
+            return int(line.split()[1]) / 1024
+    return 0.0
+
+
+def test_slow_client_hurts_nobody_and_memory_stays_bounded(server, recording, tmp_path):
+    """A client that floods 320x240 raw frames (0.5 MB each, ~400 MB in all) and never reads its replies:
+    its worker stalls on a full socket, its queue drops the oldest frames, another client is served,
+    and the process's memory does not follow the flood."""
+    big = Intrinsics(320, 240, 280.0, 280.0, 159.5, 119.5, 5000.0)
+    frame = first_frame(write_recording(tmp_path / "big", big, 1))
+    frame_mb = big.width * big.height * 7 / 2**20   # rgb8 + f32
+    sock = socket.socket()
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)   # fills after a few replies
+    sock.connect(("127.0.0.1", server.server.port))
+    with ws_connect(server.server.url, sock=sock, max_queue=1, compression=None) as ws:
+        ws.send(encode(hello_message(big, OPTIONS)))
+        slow = Client(ws, json.loads(ws.recv(60)))
+        fast = connect(server.server.url, K, OPTIONS)
+        frames = list(open_recording(recording))
+        fast.send_frame(frames[0])
+        assert fast.recv(60)["type"] == "lighting"
+        before = server.server.stats()
+        slow.send_frame(frame, 0, "rgb8", "f32")
+        wait_for(lambda: server.server.stats()["processed"] > before["processed"], 60)
+        gc.collect()
+        baseline = rss_mb()   # both sessions have fused a frame: volumes and bricks allocated
+        peak = [baseline]
+        flood_done = threading.Event()
+
+        def flood() -> None:
+            for i in range(1, N_FLOOD):
+                slow.send_frame(frame, i, "rgb8", "f32")
+                peak[0] = max(peak[0], rss_mb())
+            flood_done.set()
+
+        threading.Thread(target=flood, daemon=True).start()
+        summary = replay(fast, frames[1:])
+        flood_done.wait(120)
+        assert flood_done.is_set()
+        assert summary["frames_processed"] == N_FRAMES - 1 and summary["frames_dropped"] == 0
+        assert not summary["errors"]
+        growth = max(peak[0], rss_mb()) - baseline   # thread arenas and buffers warming up: ~70 MB here
+        dropped = server.server.stats()["dropped"] - before["dropped"]
+        print(f"\nslow client: {N_FLOOD} frames sent ({N_FLOOD * frame_mb:.0f} MB), {dropped} dropped by the server; "
+              f"peak RSS growth {growth:.0f} MB; the other client's p95 latency {summary['latency_ms']['p95']:.0f} ms")
+        assert dropped > 0.9 * N_FLOOD - N_FRAMES
+        assert growth < 150, f"memory grew by {growth:.0f} MB while {N_FLOOD * frame_mb:.0f} MB were flooded"
+        ws.socket.close()
+    wait_for(lambda: server.server.stats()["connections"] == 0)
+
+
+def test_messages_out_of_order_and_versions(server, recording):
+    frame_bytes = encode_frame(first_frame(recording))
+    with ws_connect(server.server.url, compression=None) as ws:
+        ws.send(frame_bytes)
+        assert json.loads(ws.recv(10))["code"] == "not_ready"
+        ws.send(encode({**hello_message(K, OPTIONS), "version": "2.0"}))
+        err = json.loads(ws.recv(10))
+        assert err["code"] == "version" and "1.0" in err["message"]
+        ws.send(encode(hello_message(K, OPTIONS)))
+        ready = json.loads(ws.recv(60))
+        assert ready["type"] == "ready" and ready["version"] == "1.0" and ready["compositing"] is False
+        ws.send(encode(hello_message(K, OPTIONS)))
+        assert json.loads(ws.recv(10))["code"] == "already_ready"
+        ws.send(frame_bytes)
+        reply = json.loads(ws.recv(60))
+        assert reply["type"] == "lighting" and reply["frame"] == 0 and reply["dropped"] == 0
+        ws.send(encode({"type": "bye"}))
+        bye = json.loads(ws.recv(10))
+        assert bye["type"] == "bye" and bye["frames_processed"] == 1
+        with pytest.raises(ConnectionClosed) as e:
+            ws.recv(10)
+        assert e.value.rcvd.code == 1000
+
+
+# Messages that are wrong whatever hypothesis draws: each must get exactly one error reply.
+_junk_json = st.recursive(st.none() | st.booleans() | st.floats(allow_nan=False) | st.text(max_size=8),
+                          lambda inner: st.lists(inner, max_size=3) | st.dictionaries(st.text(max_size=6), inner,
+                                                                                      max_size=3), max_leaves=8)
+_not_a_number = st.none() | st.booleans() | st.text(max_size=8) | st.lists(st.integers(), max_size=3)
+
+
+@st.composite
+def malformed(draw, valid_frame: bytes):
+    header, payload = decode(valid_frame)
+    payload = bytes(payload)
+    kind = draw(st.sampled_from(["bytes", "text", "type", "drop", "timestamp", "encoding", "range", "pose",
+                                 "corrupt", "hello"]))
+    if kind == "bytes":
+        return draw(st.binary(max_size=64))
+    if kind == "text":
+        return draw(st.text(max_size=40).filter(lambda t: '"type"' not in t))
+    if kind == "type":
+        return encode({"type": draw(st.text(max_size=10).filter(lambda t: t not in CLIENT_TYPES)),
+                       "x": draw(_junk_json)})
+    h = json.loads(json.dumps(header))
+    if kind == "drop":
+        key = draw(st.sampled_from(["timestamp", "color", "depth"]))
+        del h[key]
+    elif kind == "timestamp":
+        h["timestamp"] = draw(_not_a_number)
+    elif kind == "encoding":
+        part = draw(st.sampled_from(["color", "depth"]))
+        h[part]["encoding"] = draw(st.text(max_size=8).filter(lambda t: t not in ("png", "jpeg", "rgb8", "png16",
+                                                                                  "u16", "f32")))
+    elif kind == "range":
+        part, key = draw(st.sampled_from(["color", "depth"])), draw(st.sampled_from(["offset", "length"]))
+        h[part][key] = draw(st.integers(max_value=-1) | st.integers(min_value=len(payload) + 1) | _not_a_number)
+    elif kind == "pose":
+        h["pose"] = draw(st.lists(st.lists(st.floats(allow_nan=False, allow_infinity=False), min_size=4, max_size=4),
+                                  max_size=3) | _not_a_number.filter(lambda v: v is not None))
+    elif kind == "corrupt":   # colour PNG cut short or overwritten inside its image data (IDAT chunk)
+        c = h["color"]
+        data = bytearray(payload[:c["length"]])
+        idat = data.index(b"IDAT")
+        cut = draw(st.integers(min_value=idat + 4, max_value=idat + 3 + struct.unpack(">I", data[idat - 4:idat])[0]))
+        if draw(st.booleans()):
+            data = data[:cut]
+        else:
+            data[cut:] = draw(st.binary(min_size=len(data) - cut, max_size=len(data) - cut))
+            data[cut:cut + 8] = b"\x00" * min(8, len(data) - cut)   # make sure the image data is damaged
+        h["color"]["length"] = len(data)
+        h["depth"]["offset"] = len(data)
+        return raw_message(h, bytes(data) + payload[c["length"]:])
+    elif kind == "hello":
+        return encode(hello_message(K, OPTIONS))   # a second hello on a ready connection
+    return raw_message(h, payload)
+
+
+@pytest.fixture(scope="module")
+def ready_ws(server):
+    with ws_connect(server.server.url, compression=None) as ws:
+        ws.send(encode(hello_message(K, OPTIONS)))
+        assert json.loads(ws.recv(60))["type"] == "ready"
+        yield ws
+
+
+@settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(data=st.data())
+def test_malformed_messages_get_an_error_and_the_connection_stays_usable(ready_ws, recording, data):
+    valid = encode_frame(first_frame(recording))
+    ready_ws.send(data.draw(malformed(valid)))
+    reply = json.loads(ready_ws.recv(30))
+    assert reply["type"] == "error" and reply["code"] in ERROR_CODES and reply["message"], reply
+    ready_ws.send(valid)   # ... and a valid frame is still served
+    assert json.loads(ready_ws.recv(60))["type"] == "lighting"
+
+
+def test_limits_clients_token_idle(recording):
+    """One client at most, a token, a short idle timeout: extra, unauthorised and idle clients are closed
+    with an error naming why."""
+    with ServerThread(ServerConfig(port=0, device="cpu", max_clients=1, token="s3cret", idle_timeout=1.0)) as running:
+        url = running.server.url
+        with pytest.raises(ProtocolError) as e:
+            connect(url, K, OPTIONS, token="guess")
+        assert e.value.code == "unauthorized"
+        with pytest.raises(ProtocolError) as e:
+            connect(url, K, OPTIONS)
+        assert e.value.code == "unauthorized"
+        wait_for(lambda: running.server.stats()["connections"] == 0)
+        c = connect(url, K, OPTIONS, token="s3cret")
+        with ws_connect(url, compression=None) as extra:
+            err = json.loads(extra.recv(10))
+            assert err["code"] == "too_many_clients"
+            with pytest.raises(ConnectionClosed) as closed:
+                extra.recv(10)
+            assert closed.value.rcvd.code == 1013
+        time.sleep(1.5)   # idle
+        assert c.recv(10)["code"] == "idle_timeout"
+        with pytest.raises(ServiceClosed) as closed:
+            c.recv(10)
+        assert closed.value.code == 1000 and closed.value.reason == "idle timeout"
+
+
+def test_sigterm_finishes_frames_and_closes_with_1001(recording):
+    """`photoreg serve` as a process: SIGTERM -> the frame in work is answered, clients get bye and close
+    code 1001, the process exits 0."""
+    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    proc = subprocess.Popen([sys.executable, "-m", "photoreg", "serve", "--port", "0", "--device", "cpu"],
+                            cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        lines = []
+        while not (m := re.search(r"listening on (ws://\S+)", lines[-1] if lines else "")):
+            lines.append(proc.stdout.readline())
+            assert lines[-1] or proc.poll() is None, ("".join(lines), proc.stderr.read())
+        c = connect(m.group(1), K, OPTIONS)
+        c.send_frame(first_frame(recording))
+        assert c.recv(120)["type"] == "lighting"   # warm: kernels loaded
+        c.send_frame(first_frame(recording), 1)
+        proc.send_signal(signal.SIGTERM)
+        replies = []
+        with pytest.raises(ServiceClosed) as closed:
+            while True:
+                replies.append(c.recv(60))
+        assert closed.value.code == 1001
+        assert replies[-1]["type"] == "bye" and "shutting down" in replies[-1]["reason"]
+        assert [r["type"] for r in replies[:-1]] in (["lighting"], [])   # finished, or cancelled before starting
+        assert proc.wait(30) == 0
+        assert "stopped after" in proc.stdout.read()
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+
+
+@pytest.mark.slow
+def test_load_figures(server, tmp_path):
+    """Frames/s and latency at stride 4 through the service (printed; the assertion only bounds time)."""
+    k = Intrinsics(160, 120, 140.0, 140.0, 79.5, 59.5, 5000.0)
+    rec = write_recording(tmp_path / "load", k, 30)
+    records, summary = stream(rec, server.server.url, tmp_path / "out")
+    lat = summary["latency_ms"]
+    print(f"\nload: {summary['frames_processed']} frames {k.width}x{k.height}, stride 4, 16 rays, 2 bands, "
+          f"window 2, device {summary['device']}: {summary['frames_per_s']:.2f} frames/s, latency p50 "
+          f"{lat['p50']:.0f} ms, p95 {lat['p95']:.0f} ms, p99 {lat['p99']:.0f} ms; server-side p95 "
+          f"{summary['server_latency_ms']['p95']:.0f} ms; mean pipeline {summary['timings_ms_mean']['total']:.0f} ms")
+    assert summary["frames_processed"] == 30 and summary["wall_s"] < 120
