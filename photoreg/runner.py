@@ -138,6 +138,15 @@ def run_session(s: Session, quiet: bool = False, on_frame: Callable[[int, int], 
     }
     if pipe.tracker is not None:
         summary["tracking"] = pipe.tracker.report()
+        if rec.has_poses:  # recorded poses were withheld: score the tracked trajectory against them
+            from .recon.tracking import ate_rmse
+
+            gt = {i: rec.poses[i] for i in indices if rec.poses[i] is not None}
+            try:
+                summary["tracking"]["ate_rmse_m"] = round(ate_rmse(pipe.tracker.stats.poses, gt)[0], 5)
+            except ValueError as e:
+                summary["tracking"]["ate_rmse_m"] = None
+                summary["tracking"]["ate_note"] = str(e)
     write_json(out / "summary.json", summary)
     return summary
 

@@ -32,6 +32,12 @@ class Intrinsics:
         return Intrinsics(w, h, self.fx * factor, self.fy * factor,
                           (self.cx + 0.5) * factor - 0.5, (self.cy + 0.5) * factor - 0.5, self.depth_scale)
 
+    def check(self, where: str) -> "Intrinsics":
+        """self, or a ValueError naming `where` when the size or focal lengths are not positive."""
+        if self.width <= 0 or self.height <= 0 or not (self.fx > 0 and self.fy > 0):
+            raise ValueError(f"{where}: invalid intrinsics {self}")
+        return self
+
     def to_json(self) -> dict:
         return {"width": self.width, "height": self.height, "fx": self.fx, "fy": self.fy,
                 "cx": self.cx, "cy": self.cy, "depth_scale": self.depth_scale}

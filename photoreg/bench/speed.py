@@ -56,7 +56,7 @@ def bench_recording(session: Session, warmup: int = 2) -> dict:
     return {
         "device": pipe.device, "device_name": device_name(pipe.device),
         "warp": wp.__version__, "open3d": o3d.__version__,
-        "fusion_on": str(pipe.volume._o3d_device), "recording": session.recording.path,
+        "fusion_on": str(pipe.volume.o3d_device), "recording": session.recording.path,
         "size": f"{rec.intrinsics.width}x{rec.intrinsics.height}", "frames_timed": len(timings),
         "stride": L.stride, "rays": L.rays, "bands": L.bands, "voxel_size": session.reconstruction.voxel_size,
         "ray_length": L.ray_length,

@@ -1,7 +1,8 @@
-"""Frame-to-model camera tracking (KinectFusion style) with Open3D RGB-D odometry.
+"""Frame-to-model camera tracking (KinectFusion style) with Open3D point-to-plane odometry.
 
-The current frame is aligned against the model ray-cast from the TSDF at the previous pose; the
-first frame defines the world. A failed alignment (low fitness, high error, implausible jump) keeps
+The current frame (every 2nd pixel) is aligned against the model depth ray-cast from the TSDF by
+the project's Warp kernel at the previous pose (Open3D's own ray_cast crashed intermittently
+here); the first frame defines the world. A failed alignment (low fitness, high error, implausible jump) keeps
 the previous pose, is reported, and the frame is not fused.
 """
 from __future__ import annotations
@@ -25,8 +26,8 @@ class TrackingStats:
 class Tracker:
     """Tracks each new frame against the volume's ray-cast model."""
 
-    def __init__(self, volume, intrinsics: Intrinsics, recon: ReconstructionConfig,
-                 min_fitness: float = 0.3, max_rmse: float = 0.04, max_jump_m: float = 0.3,
+    def __init__(self, volume, intrinsics: Intrinsics, recon: ReconstructionConfig, step: int = 2,
+                 min_fitness: float = 0.1, max_rmse: float = 0.04, max_jump_m: float = 0.3,
                  max_jump_deg: float = 30.0):
         import open3d as o3d
 
@@ -34,7 +35,10 @@ class Tracker:
         self.volume = volume
         self.intr = intrinsics
         self.recon = recon
-        self.K = o3d.core.Tensor(intrinsics.K, o3d.core.float64)
+        self.step = step  # pixel (step*r, step*c) of the frame is pixel (r, c) of the tracked images
+        K = intrinsics.K.copy()
+        K[:2] /= step
+        self.K = o3d.core.Tensor(K, o3d.core.float64)
         self.limits = (min_fitness, max_rmse, max_jump_m, np.radians(max_jump_deg))
         self.pose: np.ndarray | None = None
         self.model = None   # RGBDImage ray-cast at self.pose after the last fusion
@@ -43,12 +47,11 @@ class Tracker:
         self.criteria = [od.OdometryConvergenceCriteria(20), od.OdometryConvergenceCriteria(10),
                          od.OdometryConvergenceCriteria(5)]
 
-    def _rgbd(self, depth: np.ndarray, color: np.ndarray):
+    def _rgbd(self, depth: np.ndarray):
         o3d = self.o3d
         dev = self.volume.o3d_device
-        return o3d.t.geometry.RGBDImage(
-            o3d.t.geometry.Image(o3d.core.Tensor(np.ascontiguousarray(color, np.float32), device=dev)),
-            o3d.t.geometry.Image(o3d.core.Tensor(np.ascontiguousarray(depth, np.float32)[..., None], device=dev)))
+        d = o3d.t.geometry.Image(o3d.core.Tensor(np.ascontiguousarray(depth, np.float32)[..., None], device=dev))
+        return o3d.t.geometry.RGBDImage(d, d)
 
     def track(self, frame: Frame, prep) -> tuple[np.ndarray | None, list[str]]:
         """Pose of this frame (camera-to-world), or None with a reason when tracking failed."""
@@ -60,10 +63,10 @@ class Tracker:
         if self.model is None:
             self.update_model()
         od = self.o3d.t.pipelines.odometry
-        src = self._rgbd(prep.depth, prep.linear)
+        src = self._rgbd(prep.depth[::self.step, ::self.step])
         try:
             res = od.rgbd_odometry_multi_scale(src, self.model, self.K, self.o3d.core.Tensor(np.eye(4)), 1.0,
-                                               self.recon.depth_max, self.criteria, od.Method.Hybrid)
+                                               self.recon.depth_max, self.criteria, od.Method.PointToPlane)
             T = res.transformation.cpu().numpy()
             fitness, rmse = float(res.fitness), float(res.inlier_rmse)
         except RuntimeError as e:  # Open3D raises when too few correspondences
@@ -90,8 +93,11 @@ class Tracker:
         return self.pose, []
 
     def update_model(self) -> None:
-        depth, color = self.volume.raycast_model(self.intr, self.pose, self.recon.depth_min, self.recon.depth_max)
-        self.model = self._rgbd(depth, color)
+        from ..kernels.raycast import raycast_surface
+
+        maps = raycast_surface(self.volume.dense_grid(), self.intr, self.pose, self.recon.depth_min,
+                               self.recon.depth_max, stride=self.step)
+        self.model = self._rgbd(maps.depth)
 
     def report(self) -> dict:
         s = self.stats

@@ -1,0 +1,165 @@
+"""Radiance transfer R(x) by visibility rays through dense SDF bricks, projected onto SH.
+
+R(x)_i = (1/pi) * integral V(x, w) max(n.w, 0) Y_i(w) dw (DESIGN.md), by quadrature over a fixed set
+of D equal-area directions covering the whole sphere: R_i = (1/pi) (4 pi / D) sum_{n.w_d > 0} V_d (n.w_d) Y_i(w_d).
+
+Two passes, so that visibility against several grids shares one projection:
+1. occlusion: one thread per (point, direction) marches the ray from x + n * offset and writes bit
+   flags per direction: REAL when the real-geometry grid blocks it. Virtual objects (a later issue)
+   pass a second grid to the same kernel and set VIRTUAL on the same ray, so one pass serves both;
+2. projection: one thread per (point, coefficient) sums the hemisphere directions whose flags under
+   `mask` are clear (mask REAL -> R_TR; REAL | VIRTUAL -> R_TRV), plus the visible fraction.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from photoreg.device import init_warp
+from photoreg.kernels.grid import DenseGrid, free_run, ray_box, sample_sdf
+from photoreg.lighting.sh import bands_of, fibonacci_sphere, sh_basis
+
+wp = init_warp()
+
+REAL = wp.constant(1)
+VIRTUAL = wp.constant(2)
+
+
+@dataclass
+class TransferResult:
+    """Per-point transfer and visibility; numpy copies plus the Warp arrays they came from."""
+
+    transfer: np.ndarray           # (N, B*B) float32, R_i
+    visible_fraction: np.ndarray   # (N,) float32, unoccluded share of the hemisphere's directions (0: no normal)
+    transfer_wp: wp.array2d
+    visible_fraction_wp: wp.array
+    occlusion_wp: wp.array2d       # (N, D) uint8 bit flags per direction (REAL, VIRTUAL)
+
+
+def make_direction_set(rays: int, bands: int, seed: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """2 * rays spherical-Fibonacci directions over the whole sphere (about `rays` in any hemisphere),
+    randomly rotated when seed is given, and their SH table: dirs (D, 3) and Y (D, bands^2), float32."""
+    if rays < 1 or bands < 1:
+        raise ValueError(f"make_direction_set: rays and bands must be >= 1, got {rays}, {bands}")
+    dirs = fibonacci_sphere(2 * rays, rotation_seed=seed)
+    return dirs.astype(np.float32), sh_basis(dirs, bands).astype(np.float32)
+
+
+@wp.func
+def ray_blocked(sdf: wp.array3d(dtype=wp.float32), empty: wp.array3d(dtype=wp.uint8), cell: int, origin: wp.vec3,
+                voxel: float, trunc: float, o: wp.vec3, w: wp.vec3, length: float, min_step: float) -> bool:
+    """True when the SDF turns negative on o + t w, 0 <= t <= length (SDF-sized steps, >= min_step,
+    jumping across empty cells)."""
+    inv_voxel = 1.0 / voxel
+    hi = origin + wp.vec3(float(sdf.shape[0] - 1), float(sdf.shape[1] - 1), float(sdf.shape[2] - 1)) * voxel
+    span = ray_box(o, w, origin, hi)
+    t = wp.max(span[0], 0.0)
+    t_end = wp.min(span[1], length)
+    band = 0.999 * trunc
+    while t <= t_end:
+        p = o + w * t
+        s = sample_sdf(sdf, origin, inv_voxel, trunc, p)
+        if s < 0.0:
+            return True
+        step = wp.max(s, min_step)
+        if s >= band:
+            step = wp.max(step, free_run(empty, origin, inv_voxel, voxel, cell, p))
+        t = t + step
+    return False
+
+
+@wp.kernel
+def _occlusion(sdf: wp.array3d(dtype=wp.float32), empty: wp.array3d(dtype=wp.uint8), cell: int, origin: wp.vec3,
+               voxel: float, trunc: float, points: wp.array(dtype=wp.vec3), normals: wp.array(dtype=wp.vec3),
+               dirs: wp.array(dtype=wp.vec3), offset: float, ray_length: float, min_step: float,
+               occ: wp.array2d(dtype=wp.uint8)):
+    i, k = wp.tid()
+    n = normals[i]
+    w = dirs[k]
+    bits = int(0)
+    if wp.dot(n, w) > 0.0:
+        if ray_blocked(sdf, empty, cell, origin, voxel, trunc, points[i] + n * offset, w, ray_length, min_step):
+            bits = REAL
+    occ[i, k] = wp.uint8(bits)
+
+
+@wp.kernel
+def _project(normals: wp.array(dtype=wp.vec3), dirs: wp.array(dtype=wp.vec3), ytab: wp.array2d(dtype=wp.float32),
+             occ: wp.array2d(dtype=wp.uint8), mask: int, scale: float, transfer: wp.array2d(dtype=wp.float32),
+             visible: wp.array(dtype=wp.float32)):
+    i, k = wp.tid()
+    n = normals[i]
+    acc = float(0.0)
+    n_hemi = int(0)
+    n_vis = int(0)
+    for d in range(dirs.shape[0]):
+        c = wp.dot(n, dirs[d])
+        if c > 0.0:
+            n_hemi += 1
+            if (int(occ[i, d]) & mask) == 0:
+                n_vis += 1
+                acc += c * ytab[d, k]
+    transfer[i, k] = acc * scale
+    if k == 0:
+        frac = float(0.0)
+        if n_hemi > 0:
+            frac = float(n_vis) / float(n_hemi)
+        visible[i] = frac
+
+
+def _as_warp(a, dtype, device: str, what: str, inner: int | None):
+    """A 1-D vec3 (inner=3) or 2-D float (inner=None) Warp array on `device` from numpy or Warp input."""
+    if isinstance(a, wp.array):
+        if str(a.device) != device:
+            raise ValueError(f"{what} lives on {a.device}, expected {device}")
+        if a.dtype != dtype:
+            raise ValueError(f"{what} has dtype {a.dtype}, expected {dtype}")
+        if inner is None and a.ndim != 2:
+            raise ValueError(f"{what} must be 2-D, got {a.shape}")
+        return a.flatten() if inner is not None else a
+    a = np.asarray(a, dtype=np.float32)
+    if inner is not None:
+        if a.shape[-1] != inner:
+            raise ValueError(f"{what} must be (..., {inner}), got {a.shape}")
+        a = a.reshape(-1, inner)
+    elif a.ndim != 2:
+        raise ValueError(f"{what} must be 2-D, got {a.shape}")
+    if not np.all(np.isfinite(a)):
+        raise ValueError(f"{what} has non-finite values")
+    return wp.array(np.ascontiguousarray(a), dtype=dtype, device=device)
+
+
+def radiance_transfer(grid: DenseGrid, points, normals, dirs, ytable, offset: float, ray_length: float,
+                      device: str | None = None, min_step_voxels: float = 0.5) -> TransferResult:
+    """R_TR and visible fraction at world points (N, 3) with unit world normals (N, 3; zero = skip),
+    numpy or Warp (vec3, any shape: flattened), over the direction set from make_direction_set."""
+    device = grid.device if device is None else str(wp.get_device(device))
+    if device != grid.device:
+        raise ValueError(f"radiance_transfer: grid lives on {grid.device}, asked to run on {device}")
+    if not (offset >= 0 and ray_length > 0 and min_step_voxels > 0):
+        raise ValueError(f"radiance_transfer: need offset >= 0, ray_length > 0, min_step_voxels > 0 "
+                         f"(got {offset}, {ray_length}, {min_step_voxels})")
+    p = _as_warp(points, wp.vec3, device, "points", 3)
+    n = _as_warp(normals, wp.vec3, device, "normals", 3)
+    w = _as_warp(dirs, wp.vec3, device, "dirs", 3)
+    y = _as_warp(ytable, wp.float32, device, "ytable", None)
+    if p.shape != n.shape:
+        raise ValueError(f"points {p.shape} and normals {n.shape} differ in count")
+    if y.shape[0] != w.shape[0]:
+        raise ValueError(f"ytable has {y.shape[0]} rows for {w.shape[0]} directions")
+    bands_of(y.shape[1])
+    N, D, K = p.shape[0], w.shape[0], y.shape[1]
+    occ = wp.zeros((N, D), dtype=wp.uint8, device=device)
+    transfer = wp.zeros((N, K), dtype=wp.float32, device=device)
+    visible = wp.zeros(N, dtype=wp.float32, device=device)
+    if N > 0:
+        wp.launch(_occlusion, dim=(N, D), device=device,
+                  inputs=[grid.sdf, grid.empty, int(grid.cell), wp.vec3(*grid.origin), float(grid.voxel_size),
+                          float(grid.trunc), p, n, w, float(offset), float(ray_length),
+                          float(min_step_voxels * grid.voxel_size)],
+                  outputs=[occ])
+        wp.launch(_project, dim=(N, K), device=device, inputs=[n, w, y, occ, REAL, 4.0 / D],
+                  outputs=[transfer, visible])
+    return TransferResult(transfer=transfer.numpy(), visible_fraction=visible.numpy(), transfer_wp=transfer,
+                          visible_fraction_wp=visible, occlusion_wp=occ)

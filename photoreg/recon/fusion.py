@@ -1,0 +1,224 @@
+"""TSDF fusion with Open3D's VoxelBlockGrid, and its export to a dense Warp SDF brick.
+
+Open3D 0.20 conventions (checked in tests/test_fusion_kernels.py):
+- integrate/ray_cast take the extrinsic as world-to-camera and depth in depth_scale units (we pass
+  float metres with depth_scale = 1);
+- 'tsdf' holds the projective SDF (depth - z_camera) divided by the truncation and clamped to [-1, 1],
+  positive in front of surfaces; voxels more than one truncation behind a surface are left alone;
+  'weight' counts the frames that updated a voxel (0 = never observed);
+- block b, local voxel (x, y, z) sits at world (b * res + (x, y, z)) * voxel_size and is stored at
+  attribute[buf, z, y, x] (z-major inside the block);
+- float colour is stored multiplied by 255; meshes come back in [0, 1];
+- ray_cast returns camera-frame vertices and normals, the normals pointing away from the camera.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from photoreg.device import init_warp, open3d_device
+from photoreg.io.poses import check_pose
+from photoreg.kernels.grid import DenseGrid, copy_into, scatter_blocks, update_empty_distance
+from photoreg.types import Intrinsics
+
+wp = init_warp()
+
+
+@dataclass
+class FusionConfig:
+    """TSDF volume settings (metres)."""
+
+    voxel_size: float = 0.01
+    block_resolution: int = 16         # voxels per block edge
+    block_count: int = 4000            # initial hash map capacity; Open3D doubles it when full. Each
+                                       # block preallocates res^3 * 20 bytes (80 KB at res 16)
+    trunc_voxels: float = 4.0          # truncation distance in voxels
+    depth_min: float = 0.1             # depth below this is ignored (sensor near limit)
+    depth_max: float = 4.0             # depth beyond this is ignored
+    min_weight: float = 1.0            # voxels with less integrated weight count as unobserved
+    grid_margin_blocks: int = 1        # extra blocks around the touched region when the brick (re)grows
+    max_dense_voxels: int = 1 << 27    # dense brick limit (512 MB of float32)
+
+    def __post_init__(self):
+        if not (self.voxel_size > 0 and self.trunc_voxels > 0 and self.block_resolution > 0):
+            raise ValueError("voxel_size, trunc_voxels and block_resolution must be positive")
+        if not 0 <= self.depth_min < self.depth_max:
+            raise ValueError(f"need 0 <= depth_min < depth_max, got {self.depth_min}, {self.depth_max}")
+        if self.grid_margin_blocks < 0 or self.max_dense_voxels <= 0:
+            raise ValueError("grid_margin_blocks must be >= 0 and max_dense_voxels > 0")
+
+    @property
+    def trunc(self) -> float:
+        """Truncation distance in metres."""
+        return self.trunc_voxels * self.voxel_size
+
+
+class TSDFVolume:
+    """An Open3D VoxelBlockGrid ('tsdf', 'weight', 'color') plus a dense SDF brick on the Warp device.
+
+    integrate() fuses frames; dense_grid() brings the brick up to date with the blocks touched since
+    the last export (scattered by a Warp kernel straight from Open3D's buffers via DLPack).
+    """
+
+    def __init__(self, cfg: FusionConfig | None = None, device: str = "cpu"):
+        import open3d as o3d
+
+        self.cfg = cfg or FusionConfig()
+        self.device = str(wp.get_device(device))  # Warp device string, e.g. "cpu" or "cuda:0"
+        self._o3d = o3d
+        self.o3d_device = open3d_device(device)
+        c = o3d.core
+        self.vbg = o3d.t.geometry.VoxelBlockGrid(
+            ("tsdf", "weight", "color"), (c.float32, c.float32, c.float32), ((1,), (1,), (3,)),
+            self.cfg.voxel_size, self.cfg.block_resolution, self.cfg.block_count, self.o3d_device)
+        self.frames_integrated = 0
+        self._pending: list = []   # block-coordinate tensors touched since the last export
+        self._sdf = None           # wp.array3d brick
+        self._occupied = None      # uint8 per block: any voxel below +trunc
+        self._empty = None         # uint8 per block: Chebyshev distance to the nearest occupied block
+        self._lo_block = None      # (3,) int64 block coordinate of the brick's first block
+        self._dims_blocks = None   # (3,) int64 brick size in blocks
+
+    # --- Open3D side -------------------------------------------------------------------------
+    def _tensor(self, a: np.ndarray):
+        return self._o3d.core.Tensor(np.ascontiguousarray(a), device=self.o3d_device)
+
+    def _camera(self, intr: Intrinsics, pose_c2w: np.ndarray, where: str):
+        intr.check(where)
+        pose = check_pose(pose_c2w, where)
+        return self._o3d.core.Tensor(intr.K), self._o3d.core.Tensor(np.linalg.inv(pose)), pose
+
+    def integrate(self, depth: np.ndarray, color_linear: np.ndarray | None, intr: Intrinsics,
+                  pose_c2w: np.ndarray) -> None:
+        """Fuse one frame: depth HxW metres (0/NaN invalid; outside [depth_min, depth_max] ignored),
+        optional linear colour HxWx3 in [0, 1], pose camera-to-world."""
+        o3d = self._o3d
+        depth = np.asarray(depth, dtype=np.float32)
+        if depth.shape != (intr.height, intr.width):
+            raise ValueError(f"depth shape {depth.shape} does not match intrinsics {intr.height}x{intr.width}")
+        K, extrinsic, _ = self._camera(intr, pose_c2w, "TSDFVolume.integrate")
+        # Open3D reads the depth pixel floor(u) for a voxel projecting to u; shifting the principal
+        # point by half a pixel makes that the nearest pixel (OpenCV: pixel centres at integers).
+        K_nearest = K + self._o3d.core.Tensor(np.array([[0.0, 0.0, 0.5], [0.0, 0.0, 0.5], [0.0, 0.0, 0.0]]))
+        cfg = self.cfg
+        depth = np.where(np.isfinite(depth) & (depth >= cfg.depth_min), depth, 0.0).astype(np.float32)
+        if not np.any((depth > 0) & (depth < cfg.depth_max)):
+            return  # nothing to fuse (Open3D would raise)
+        depth_img = o3d.t.geometry.Image(self._tensor(depth))
+        depth_max, trunc_voxels = float(cfg.depth_max), float(cfg.trunc_voxels)
+        blocks = self.vbg.compute_unique_block_coordinates(depth_img, K, extrinsic, 1.0, depth_max, trunc_voxels)
+        if color_linear is None:
+            self.vbg.integrate(blocks, depth_img, K_nearest, extrinsic, 1.0, depth_max, trunc_voxels)
+        else:
+            color = np.asarray(color_linear, dtype=np.float32)
+            if color.shape != (intr.height, intr.width, 3):
+                raise ValueError(f"colour shape {color.shape} does not match depth {depth.shape} x 3")
+            self.vbg.integrate(blocks, depth_img, o3d.t.geometry.Image(self._tensor(color)), K_nearest, extrinsic,
+                               1.0, depth_max, trunc_voxels)
+        self._pending.append(blocks)
+        self.frames_integrated += 1
+
+    def active_block_coords(self):
+        """(M, 3) int32 Open3D tensor of every allocated block."""
+        hm = self.vbg.hashmap()
+        return hm.key_tensor()[hm.active_buf_indices().to(self._o3d.core.int64)]
+
+    def _raycast_o3d(self, intr: Intrinsics, pose_c2w: np.ndarray, attributes: list[str], where: str):
+        """Open3D's VoxelBlockGrid.ray_cast of the given attributes; None when the volume is empty."""
+        K, extrinsic, pose = self._camera(intr, pose_c2w, where)
+        blocks = self.active_block_coords()
+        if blocks.shape[0] == 0:
+            return None
+        # Open3D 0.20 sizes its range-map fragment buffer from the range-map area: with too few
+        # range pixels per block it leaves pixels unrendered or hangs, so keep >= 8 pixels per block.
+        factor = 8
+        while factor > 1 and (intr.height // factor) * (intr.width // factor) < 8 * blocks.shape[0]:
+            factor //= 2
+        cfg = self.cfg
+        return self.vbg.ray_cast(blocks, K, extrinsic, intr.width, intr.height, attributes, 1.0,
+                                 float(cfg.depth_min), float(cfg.depth_max), float(cfg.min_weight),
+                                 float(cfg.trunc_voxels), factor)
+
+    def raycast_open3d(self, intr: Intrinsics, pose_c2w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Open3D's own ray cast (the reference for the Warp one): depth HxW metres (0 = miss) and
+        world-frame unit normals HxWx3 pointing toward free space (0 = miss)."""
+        out = self._raycast_o3d(intr, pose_c2w, ["depth", "normal"], "TSDFVolume.raycast_open3d")
+        if out is None:
+            return np.zeros((intr.height, intr.width), np.float32), np.zeros((intr.height, intr.width, 3), np.float32)
+        depth = out["depth"].cpu().numpy()[..., 0].astype(np.float32)
+        normal_cam = out["normal"].cpu().numpy().astype(np.float64)
+        normal = -(normal_cam @ np.asarray(pose_c2w)[:3, :3].T)
+        normal[depth <= 0] = 0.0
+        return depth, normal.astype(np.float32)
+
+    def raycast_model(self, intr: Intrinsics, pose_c2w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Model view for frame-to-model tracking: depth HxW metres (0 = miss) and fused linear colour HxWx3."""
+        out = self._raycast_o3d(intr, pose_c2w, ["depth", "color"], "TSDFVolume.raycast_model")
+        if out is None:
+            return np.zeros((intr.height, intr.width), np.float32), np.zeros((intr.height, intr.width, 3), np.float32)
+        return (out["depth"].cpu().numpy()[..., 0].astype(np.float32),
+                np.clip(out["color"].cpu().numpy(), 0, 1).astype(np.float32))
+
+    def extract_mesh(self):
+        """Marching-cubes mesh (open3d.t.geometry.TriangleMesh, colours in [0, 1]) of observed voxels."""
+        return self.vbg.extract_triangle_mesh(weight_threshold=float(self.cfg.min_weight))
+
+    # --- dense Warp brick ----------------------------------------------------------------------
+    def _to_warp(self, tensor):
+        a = wp.from_dlpack(tensor.to_dlpack())
+        return a if str(a.device) == str(wp.get_device(self.device)) else a.to(self.device)
+
+    def _ensure_covers(self, lo: np.ndarray, hi: np.ndarray) -> None:
+        """Allocate or grow the brick so that it covers blocks [lo, hi] (inclusive)."""
+        R = self.cfg.block_resolution
+        if self._sdf is not None:
+            cur_lo, cur_hi = self._lo_block, self._lo_block + self._dims_blocks - 1
+            if np.all(lo >= cur_lo) and np.all(hi <= cur_hi):
+                return
+            lo, hi = np.minimum(lo, cur_lo), np.maximum(hi, cur_hi)
+        m = self.cfg.grid_margin_blocks
+        new_lo, new_hi = lo - m, hi + m
+        if np.prod((new_hi - new_lo + 1) * R) > self.cfg.max_dense_voxels:
+            new_lo, new_hi = lo, hi  # drop the margin before giving up
+        dims = (new_hi - new_lo + 1).astype(np.int64)
+        n_vox = int(np.prod(dims * R))
+        if n_vox > self.cfg.max_dense_voxels:
+            size_m = dims * R * self.cfg.voxel_size
+            raise RuntimeError(
+                f"dense SDF brick would need {n_vox} voxels ({size_m[0]:.2f} x {size_m[1]:.2f} x {size_m[2]:.2f} m "
+                f"at {self.cfg.voxel_size} m), more than FusionConfig.max_dense_voxels = {self.cfg.max_dense_voxels}; "
+                "raise the limit, use larger voxels or a smaller depth_max")
+        sdf = wp.full(tuple(int(d * R) for d in dims), self.cfg.trunc, dtype=wp.float32, device=self.device)
+        occupied = wp.zeros(tuple(int(d) for d in dims), dtype=wp.uint8, device=self.device)
+        if self._sdf is not None:
+            copy_into(self._sdf, sdf, (self._lo_block - new_lo) * R)
+            copy_into(self._occupied, occupied, self._lo_block - new_lo)
+        self._sdf, self._occupied, self._empty = sdf, occupied, wp.empty_like(occupied)
+        self._lo_block, self._dims_blocks = new_lo.astype(np.int64), dims
+
+    def dense_grid(self) -> DenseGrid:
+        """The dense SDF brick, updated with every block touched since the last call (before any
+        integration: an all-empty brick around the origin)."""
+        cfg, R = self.cfg, self.cfg.block_resolution
+        if self._sdf is None and not self._pending:
+            self._ensure_covers(np.zeros(3, np.int64), np.zeros(3, np.int64))
+            update_empty_distance(self._occupied, self._empty)
+        if self._pending:
+            o3c = self._o3d.core
+            blocks = self._pending[0] if len(self._pending) == 1 else o3c.concatenate(self._pending, 0)
+            self._ensure_covers(blocks.min(dim=[0]).cpu().numpy().astype(np.int64),
+                                blocks.max(dim=[0]).cpu().numpy().astype(np.int64))
+            bufs, found = self.vbg.hashmap().find(blocks)
+            cap = self.vbg.hashmap().capacity()
+            tsdf = self.vbg.attribute("tsdf").reshape((cap, R ** 3))
+            weight = self.vbg.attribute("weight").reshape((cap, R ** 3))
+            scatter_blocks(self._to_warp(blocks.contiguous()), self._to_warp(bufs), self._to_warp(found),
+                           self._to_warp(tsdf), self._to_warp(weight), R, self._lo_block, cfg.trunc,
+                           cfg.min_weight, self._sdf, self._occupied)
+            update_empty_distance(self._occupied, self._empty)
+            wp.synchronize_device(self.device)  # the DLPack views of Open3D's buffers end here
+            self._pending = []
+        return DenseGrid(sdf=self._sdf, origin=(self._lo_block * R).astype(np.float64) * cfg.voxel_size,
+                         voxel_size=float(cfg.voxel_size), trunc=float(cfg.trunc),
+                         shape=tuple(int(s) for s in self._sdf.shape), empty=self._empty, cell=R)
