@@ -21,7 +21,7 @@ def init_warp():
         cache = warp_cache_dir()
         cache.mkdir(parents=True, exist_ok=True)
         wp.config.kernel_cache_dir = str(cache)
-        wp.config.quiet = True
+        wp.config.log_level = wp.LOG_WARNING  # no start-up banner or per-module load lines on stdout
         wp.init()
         _WARP_READY = True
     return wp

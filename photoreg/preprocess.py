@@ -47,8 +47,9 @@ def prepare(frame: Frame, light: LightingConfig, recon: ReconstructionConfig) ->
     if frame.color.shape[:2] != (frame.intrinsics.height, frame.intrinsics.width):
         raise ValueError(f"frame {frame.index} ({frame.source}): size {frame.color.shape[1]}x{frame.color.shape[0]} "
                          f"differs from the intrinsics {frame.intrinsics.width}x{frame.intrinsics.height}")
-    saturated = frame.color.max(axis=2) >= light.saturation_level
-    black = frame.color.max(axis=2) <= light.black_level
+    cmax = frame.color.max(axis=2)
+    saturated = cmax >= light.saturation_level
+    black = cmax <= light.black_level
     d = np.nan_to_num(frame.depth.astype(np.float32), nan=0.0, posinf=0.0, neginf=0.0)
     valid = (d >= recon.depth_min) & (d <= recon.depth_max)
     d = np.where(valid, d, 0.0).astype(np.float32)

@@ -10,10 +10,18 @@ import numpy as np
 from .atomic import atomic_path
 
 
-def srgb_to_linear(img: np.ndarray) -> np.ndarray:
-    """8-bit (or [0,1] float) sRGB -> linear float32 in [0,1] (IEC 61966-2-1 EOTF)."""
-    x = img.astype(np.float32) / 255.0 if img.dtype == np.uint8 else img.astype(np.float32)
+def _srgb_eotf(x: np.ndarray) -> np.ndarray:
     return np.where(x <= 0.04045, x / 12.92, ((x + 0.055) / 1.055) ** 2.4).astype(np.float32)
+
+
+_SRGB_LUT = _srgb_eotf(np.arange(256, dtype=np.float32) / 255.0)
+
+
+def srgb_to_linear(img: np.ndarray) -> np.ndarray:
+    """8-bit (or [0,1] float) sRGB -> linear float32 in [0,1] (IEC 61966-2-1 EOTF); 8-bit by table lookup."""
+    if img.dtype == np.uint8:
+        return _SRGB_LUT[img]
+    return _srgb_eotf(img.astype(np.float32))
 
 
 def linear_to_srgb(img: np.ndarray) -> np.ndarray:
