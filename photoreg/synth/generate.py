@@ -1,0 +1,216 @@
+"""`photoreg synth`: render a ground-truth RGB-D recording (native layout) with Mitsuba 3.
+
+Outputs in the recording folder: rgb/ depth/ [depth_clean/] rgb.txt depth.txt groundtruth.txt
+intrinsics.json lighting_gt.json scene.json, and for insert frames insert/ (sRGB PNG and linear EXR
+with the virtual object added) insert_mask/ object.obj session.toml.
+Images hold exposure * radiance; lighting_gt.json holds the SH of the unexposed environment, so
+lighting estimated from the images should match exposure * sh.
+"""
+from __future__ import annotations
+
+import importlib.metadata
+import shlex
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from ..io.atomic import atomic_path, write_json, write_text
+from ..io.images import linear_to_srgb, write_exr, write_png_rgb
+from ..io.native import NativeWriter, frame_name
+from .cameras import CAMERA_PATHS, camera_path, default_intrinsics
+from .depth import kinect_like
+from .environment import ProceduralSky, emitter_rotation, environment_sh, load_environment
+from .render import MitsubaScene, mitsuba
+from .scenes import SCENE_KINDS, build_scene
+
+GENERATOR_VERSION = "1"
+FPS = 30.0  # frame i is at i / FPS seconds
+BANDS = 8
+
+
+@dataclass
+class SynthConfig:
+    """Everything that determines a generated recording (the CLI's options, plus the procedural sky)."""
+
+    scene: str
+    out: str
+    frames: int = 30
+    width: int = 320
+    height: int = 240
+    spp: int = 64
+    env: str = "procedural"  # path to an equirect .hdr/.exr, or "procedural"
+    yaw: float = 0.0  # degrees about world +z
+    seed: int = 0
+    camera: str = "orbit"
+    direct_only: bool = False
+    insert_frames: str = "auto"  # "auto", "none" or comma-separated frame indices
+    noise: bool = True  # Kinect-like depth in depth/ and the clean depth in depth_clean/
+    mesh: str | None = None  # mesh file for the tabletop's mesh object (default: a procedural cylinder)
+    sky: ProceduralSky = field(default_factory=ProceduralSky)
+
+    def command_line(self) -> str:
+        """The `photoreg synth` command reproducing this config (the procedural sky is always the default)."""
+        args = ["photoreg", "synth", self.scene, "--out", self.out, "--frames", str(self.frames),
+                "--size", f"{self.width}x{self.height}", "--spp", str(self.spp), "--env", self.env,
+                "--yaw", f"{self.yaw:g}", "--seed", str(self.seed), "--camera", self.camera,
+                "--insert-frames", self.insert_frames]
+        args += ["--direct-only"] * self.direct_only + ["--no-noise"] * (not self.noise)
+        args += ["--mesh", self.mesh] if self.mesh else []
+        return shlex.join(args)
+
+    def validate(self) -> None:
+        """Clear errors naming the option for values the generator cannot use."""
+        if self.scene not in SCENE_KINDS:
+            raise ValueError(f"unknown scene kind {self.scene!r}; choose one of {', '.join(SCENE_KINDS)}")
+        if self.camera not in CAMERA_PATHS:
+            raise ValueError(f"--camera {self.camera!r}: choose one of {', '.join(CAMERA_PATHS)}")
+        if self.frames < 1:
+            raise ValueError(f"--frames {self.frames}: need at least 1")
+        if self.spp < 1:
+            raise ValueError(f"--spp {self.spp}: need at least 1")
+        if self.width < 8 or self.height < 8:
+            raise ValueError(f"--size {self.width}x{self.height}: need at least 8x8 pixels")
+        if self.mesh and self.scene != "tabletop":
+            raise ValueError(f"--mesh is used by the tabletop scene only (scene is {self.scene!r})")
+        if self.env != "procedural" and not Path(self.env).is_file():
+            raise FileNotFoundError(f"--env {self.env}: no such HDR file (give a .hdr/.exr path or 'procedural')")
+        insert_indices(self.insert_frames, self.frames)
+
+
+def parse_size(text: str) -> tuple[int, int]:
+    """'WxH' -> (W, H)."""
+    parts = text.lower().split("x")
+    if len(parts) != 2 or not all(p.strip().isdigit() for p in parts):
+        raise ValueError(f"--size {text!r}: expected WxH in pixels, e.g. 320x240")
+    return int(parts[0]), int(parts[1])
+
+
+def insert_indices(spec: str, n: int) -> list[int]:
+    """Frames re-rendered with the virtual object: 'auto' (3 spread over the sequence), 'none', or 'i,j,k'."""
+    spec = spec.strip().lower()
+    if spec == "auto":
+        return sorted({int(round(x)) for x in np.linspace(0, n - 1, min(3, n) + 2)[1:-1]})
+    if spec in ("none", ""):
+        return []
+    try:
+        idx = sorted({int(x) for x in spec.split(",")})
+    except ValueError:
+        raise ValueError(f"--insert-frames {spec!r}: expected 'auto', 'none' or comma-separated frame indices") from None
+    bad = [i for i in idx if not 0 <= i < n]
+    if bad:
+        raise ValueError(f"--insert-frames: frames {bad} outside 0..{n - 1}")
+    return idx
+
+
+def choose_exposure(linear: np.ndarray, percentile: float = 99.5, target: float = 0.9) -> float:
+    """Scale putting the `percentile` of the per-pixel max channel at `target` (so under 1% clip)."""
+    level = float(np.percentile(np.max(linear, axis=-1), percentile))
+    if not np.isfinite(level) or level <= 0:
+        raise RuntimeError("frame 0 rendered black: cannot choose an exposure")
+    return target / level
+
+
+def _session_toml(obj) -> str:
+    """session.toml inserting the virtual object into this recording (DESIGN.md session file)."""
+    def vec(v):
+        return "[" + ", ".join(repr(float(x)) for x in v) + "]"
+    return (f"# Virtual object of the insert/ ground truth, placed in this recording (written by photoreg synth).\n"
+            f"[recording]\npath = \".\"\nformat = \"native\"\n\n"
+            f"[[objects]]\nmesh = \"object.obj\"\nposition = {vec(obj.position)}\nrotation = {vec(obj.rotation_deg)}\n"
+            f"scale = {float(obj.scale)!r}\nalbedo = {vec(obj.albedo)}\n\n"
+            f"[render]\nshadows = \"voxel\"\n\n[output]\ndir = \"out\"\n")
+
+
+def generate(cfg: SynthConfig, log: Callable[[str], None] | None = print) -> Path:
+    """Render the recording described by `cfg` into cfg.out (which must be absent or empty); returns its path."""
+    cfg.validate()
+    out = Path(cfg.out)
+    if out.exists() and (not out.is_dir() or any(out.iterdir())):
+        raise ValueError(f"--out {out}: exists and is not an empty folder; remove it or choose another")
+    say = log or (lambda _msg: None)
+    t_start = time.perf_counter()
+    mi = mitsuba()
+    layout = build_scene(cfg.scene, cfg.mesh)
+    env_image, env_desc = load_environment(cfg.env, cfg.sky)
+    rotation = emitter_rotation(cfg.yaw)
+    sh = environment_sh(env_image, rotation, BANDS)
+    K = default_intrinsics(cfg.width, cfg.height)
+    poses = camera_path(cfg.camera, cfg.frames, layout.rig, cfg.seed)
+    inserts = insert_indices(cfg.insert_frames, cfg.frames)
+    max_depth = 2 if cfg.direct_only else 6
+    base = MitsubaScene(layout.objects, env_image, rotation, K, max_depth)
+    with_object = (MitsubaScene(layout.objects + [layout.insert.scene_object()], env_image, rotation, K, max_depth)
+                   if inserts else None)
+    writer = NativeWriter(out, K, source=f"photoreg synth {GENERATOR_VERSION}")
+    exposure = None
+    per_frame = []
+    for i, pose in enumerate(poses):
+        t0 = time.perf_counter()
+        seed = (cfg.seed * 100003 + i) % 2**32
+        radiance = base.render(pose, cfg.spp, seed)
+        if exposure is None:
+            exposure = choose_exposure(radiance)
+        z = base.geometry(pose)
+        noisy = kinect_like(z, np.random.default_rng([cfg.seed, i])) if cfg.noise else None
+        writer.write_frame(i, i / FPS, linear_to_srgb(exposure * radiance), z if noisy is None else noisy, pose,
+                           depth_clean=z if cfg.noise else None)
+        if i in inserts:
+            lit = exposure * with_object.render(pose, cfg.spp, seed)  # same seed: noise correlated with rgb/
+            z_obj = with_object.geometry(pose)
+            mask = (z_obj > 0) & ((z == 0) | (z_obj < z - 1e-5 * (1.0 + z)))
+            name = frame_name(i)
+            write_png_rgb(out / "insert" / f"{name}.png", linear_to_srgb(lit))
+            write_exr(out / "insert" / f"{name}.exr", lit)
+            write_png_rgb(out / "insert_mask" / f"{name}.png", np.repeat(mask[..., None] * np.uint8(255), 3, axis=-1))
+        per_frame.append(time.perf_counter() - t0)
+        say(f"frame {i + 1}/{cfg.frames}: {per_frame[-1]:.2f} s" + (" (+ insert)" if i in inserts else ""))
+    writer.finish()
+    writer.write_lighting_gt(sh, exposure=exposure)
+
+    if inserts:
+        with atomic_path(out / "object.obj") as tmp:
+            layout.insert.local_mesh().export(tmp, file_type="obj", include_normals=False)
+        write_text(out / "session.toml", _session_toml(layout.insert))
+    write_json(out / "scene.json", {
+        "generator": {"name": "photoreg synth", "version": GENERATOR_VERSION,
+                      "photoreg": importlib.metadata.version("photoreg"),
+                      "mitsuba": mi.__version__, "variant": mi.variant()},
+        "command": cfg.command_line(),
+        "config": {k: v for k, v in asdict(cfg).items() if k != "sky"},
+        "world": {"up": "+z", "floor_z": 0.0, "units": "metres",
+                  "object_local_frame": "base on z=0, centred in x and y; transform is object-to-world"},
+        "scene": cfg.scene,
+        "objects": [o.to_json() for o in layout.objects],
+        "lighting": {**env_desc, "yaw_deg": cfg.yaw, "emitter_to_world": rotation.tolist(), "bands": BANDS,
+                     "emitter_mapping": "v = R^T w; u = atan2(v.x, -v.z)/(2 pi); t = acos(v.y)/pi; "
+                                        "texel nodes at u=(j+0.5)/W, t=i/(H-1), bilinear"},
+        "camera": {"path": cfg.camera, "rig": layout.rig.to_json(), "hfov_deg": 60.0, "fps": FPS,
+                   "pose": "camera-to-world, OpenCV camera frame (x right, y down, z forward)"},
+        "render": {"integrator": "path", "max_depth": max_depth, "spp": cfg.spp, "seed": cfg.seed,
+                   "reconstruction_filter": "box"},
+        "exposure": exposure,
+        "exposure_rule": "99.5th percentile of frame 0's per-pixel max channel -> 0.9; images = exposure * radiance",
+        "depth": {"depth_scale": K.depth_scale, "clean": "depth_clean/" if cfg.noise else "depth/",
+                  "noise": ("sigma = 1.2 mm + 1.9 mm * (z - 0.4)^2, holes where a 3x3 neighbourhood spans "
+                            "> 4% of z or touches a missing pixel, quantised to 1/depth_scale m") if cfg.noise else None},
+        "insert": {"frames": inserts, "mesh": "object.obj" if inserts else None,
+                   "object": {**asdict(layout.insert), "type": "box (unit cube, base on z=0)"},
+                   "images": "insert/NNNNNN.png (sRGB) and .exr (linear, exposure applied); insert_mask/ 255 = virtual object"},
+    })
+    total = time.perf_counter() - t_start
+    say(f"wrote {cfg.frames} frames to {out} in {total:.1f} s ({np.mean(per_frame):.2f} s/frame, "
+        f"{mi.variant()}, exposure {exposure:.4g})")
+    return out
+
+
+def synth_command(args) -> int:
+    """CLI wrapper: argparse namespace of `photoreg synth` -> generate()."""
+    width, height = parse_size(args.size)
+    cfg = SynthConfig(scene=args.scene, out=args.out, frames=args.frames, width=width, height=height, spp=args.spp,
+                      env=args.env, yaw=args.yaw, seed=args.seed, camera=args.camera, direct_only=args.direct_only,
+                      insert_frames=args.insert_frames, noise=not args.no_noise, mesh=args.mesh)
+    generate(cfg, log=lambda msg: print(msg, flush=True))
+    return 0
