@@ -31,23 +31,24 @@ def linear_to_srgb(img: np.ndarray) -> np.ndarray:
     return np.clip(np.round(y * 255.0), 0, 255).astype(np.uint8)
 
 
-def read_rgb(path: str | os.PathLike) -> np.ndarray:
-    """Any colour image OpenCV reads -> HxWx3 uint8 RGB; clear error naming the file."""
+def _imread(path: str | os.PathLike, flags: int, what: str) -> np.ndarray:
+    """cv2.imread with errors that name the file: missing, or not a readable `what`."""
     if not Path(path).is_file():
         raise FileNotFoundError(f"{path}: no such file")
-    img = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    img = cv2.imread(str(path), flags)
     if img is None:
-        raise ValueError(f"{path}: not a readable colour image")
-    return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
+        raise ValueError(f"{path}: not a readable {what}")
+    return img
+
+
+def read_rgb(path: str | os.PathLike) -> np.ndarray:
+    """Any colour image OpenCV reads -> HxWx3 uint8 RGB; clear error naming the file."""
+    return cv2.cvtColor(_imread(path, cv2.IMREAD_COLOR, "colour image"), cv2.COLOR_BGR2RGB)
 
 
 def read_depth_raw(path: str | os.PathLike) -> np.ndarray:
     """Single-channel 16-bit or float depth image in its stored units (not metres); clear error naming the file."""
-    if not Path(path).is_file():
-        raise FileNotFoundError(f"{path}: no such file")
-    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-    if img is None:
-        raise ValueError(f"{path}: not a readable depth image")
+    img = _imread(path, cv2.IMREAD_UNCHANGED, "depth image")
     if img.ndim != 2:
         raise ValueError(f"{path}: depth image has {img.shape[2]} channels, expected 1")
     if img.dtype != np.uint16 and not np.issubdtype(img.dtype, np.floating):
