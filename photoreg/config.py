@@ -36,7 +36,7 @@ class ReconstructionConfig:
 
 @dataclass
 class LightingConfig:
-    bands: int = 3                # SH bands B (B*B coefficients)
+    bands: int = 5                # SH bands B (B*B coefficients); 5 beat 3 (benchmarks/lighting_accuracy.md)
     rays: int = 64                # visibility rays per sample over the hemisphere
     stride: int = 4               # sample every n-th pixel in x and y
     ray_length: float = 0.5       # metres
@@ -48,6 +48,21 @@ class LightingConfig:
     saturation_level: int = 250   # 8-bit value at or above which a pixel counts as saturated
     black_level: int = 3          # 8-bit value at or below which a pixel counts as black
     denoise: str = "none"         # none | tvl1 | guided: edge-preserving luminance denoising
+    # Robust lighting (issue 4; photoreg.lighting.robust, benchmarks/lighting_accuracy.md). All "off" values
+    # (loss none, albedo single, select fixed, checks 180/inf, temporal and exposure false) give the paper's solver.
+    loss: str = "huber"           # none | huber | tukey: IRLS loss on luminance residuals
+    albedo: str = "regions"       # single | regions: one albedo, or per-region albedo solved jointly
+    albedo_reference: str = "max"  # max | largest | mean: what albedo 1 means (fixes the scale ambiguity)
+    select: str = "fixed"         # fixed | gcv | holdout | aic | bic: per-frame band count and regularisation
+    max_bands: int = 5            # largest band count tried when select is not fixed
+    max_samples: int = 8000       # random subsample of the usable samples per solve (solve time is linear in it)
+    bin_min_fraction: float = 0.01  # normal bins with fewer samples than this share get less weight
+    max_normal_angle: float = 30.0  # degrees: drop samples whose fused normal disagrees with the frame's depth
+    max_depth_gap_voxels: float = 3.0  # ... or whose fused surface is this far from the frame's depth
+    temporal: bool = True         # Kalman filter of the SH across frames (photoreg.lighting.temporal)
+    process_noise: float = 0.02   # filter random-walk step, share of a frame's measurement variance
+    change_threshold: float = 1.0  # restart the filter when the prediction fits (1 + this) x worse than usual
+    exposure: bool = True         # per-frame gain against the fused radiance (auto-exposure)
 
 
 @dataclass
@@ -88,6 +103,10 @@ _CHOICES = {
     ("lighting", "weighting"): {"bins", "density", "none"},
     ("lighting", "mode"): {"rgb", "white"},
     ("lighting", "denoise"): {"none", "tvl1", "guided"},
+    ("lighting", "loss"): {"none", "huber", "tukey"},
+    ("lighting", "albedo"): {"single", "regions"},
+    ("lighting", "albedo_reference"): {"max", "largest", "mean"},
+    ("lighting", "select"): {"fixed", "gcv", "holdout", "aic", "bic"},
     ("render", "shadows"): {"voxel", "shadowmap", "neural_soft", "neural_shadowmap", "none"},
     ("", "device"): {"auto", "cpu", "cuda"},
 }
@@ -196,6 +215,13 @@ def validate(s: Session) -> None:
               (L.ray_length > 0, "lighting.ray_length must be > 0"),
               (0 <= L.min_visible < 1, "lighting.min_visible must be in [0, 1)"),
               (L.regularization >= 0, "lighting.regularization must be >= 0"),
+              (1 <= L.max_bands <= 8, "lighting.max_bands must be in 1..8"),
+              (L.max_samples >= 1, "lighting.max_samples must be >= 1"),
+              (0 <= L.bin_min_fraction < 1, "lighting.bin_min_fraction must be in [0, 1)"),
+              (0 < L.max_normal_angle <= 180, "lighting.max_normal_angle must be in (0, 180]"),
+              (L.max_depth_gap_voxels > 0, "lighting.max_depth_gap_voxels must be > 0"),
+              (L.process_noise >= 0 and L.change_threshold > 0,
+               "lighting.process_noise must be >= 0 and lighting.change_threshold > 0"),
               (R.voxel_size > 0, "reconstruction.voxel_size must be > 0"),
               (0 < R.depth_min < R.depth_max, "reconstruction.depth_min must be > 0 and < depth_max")]
     for ok, msg in checks:

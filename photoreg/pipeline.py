@@ -17,7 +17,11 @@ from .device import init_warp, resolve_device
 from .kernels.raycast import raycast_surface
 from .kernels.transfer import make_direction_set, radiance_transfer
 from .lighting import sh
-from .lighting.solver import SolverConfig, solve_lighting
+from .lighting.exposure import ExposureTracker
+from .lighting.robust import solve
+from .lighting.samples import agreement
+from .lighting.solver import SolverConfig
+from .lighting.temporal import FilterConfig, LightingFilter
 from .preprocess import Prepared, prepare
 from .recon.fusion import FusionConfig, TSDFVolume
 from .types import Frame, FrameResult, Intrinsics, Lighting, SolveDiagnostics
@@ -34,15 +38,21 @@ class Pipeline:
         rc, lc = session.reconstruction, session.lighting
         self.volume = TSDFVolume(FusionConfig(voxel_size=rc.voxel_size, trunc_voxels=rc.trunc_voxels,
                                               depth_max=rc.depth_max, block_count=rc.block_count), self.device)
-        self.dirs, self.Y = make_direction_set(lc.rays, lc.bands, seed=0)
-        self.solver_cfg = SolverConfig(bands=lc.bands, weighting=lc.weighting, regularization=lc.regularization,
-                                       min_visible=lc.min_visible, mode=lc.mode)
+        self.solver_cfg = SolverConfig.from_lighting(lc)
+        self.dirs, self.Y = make_direction_set(lc.rays, self.solver_cfg.fit_bands, seed=0)
+        self.filter = (LightingFilter(self.solver_cfg.fit_bands, FilterConfig(lc.process_noise, lc.change_threshold))
+                       if lc.temporal else None)
+        self.exposure = ExposureTracker(cell=2 * rc.voxel_size) if lc.exposure else None
         self.tracker = None
         if not session.recording.use_poses:
             from .recon.tracking import Tracker
             self.tracker = Tracker(self.volume, intrinsics, rc)
         self.prev_F: np.ndarray | None = None
         self.n_frames = 0
+        self.render = None  # virtual objects (issue 5): RenderStage, built before any frame
+        if session.objects:
+            from .render.stage import RenderStage
+            self.render = RenderStage(session, intrinsics, self.device)
 
     @contextmanager
     def _timed(self, timings: dict, stage: str):
@@ -59,9 +69,11 @@ class Pipeline:
             return None, [f"frame {frame.index}: no pose in the recording (use --no-poses to track)"]
         return frame.pose, []
 
-    def _samples(self, prep: Prepared, maps) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Radiance (box average), world points and normals at the usable sample pixels."""
-        st = self.session.lighting.stride
+    def _samples(self, prep: Prepared, maps, pose: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Radiance (box average), world points and normals at the usable sample pixels whose fused
+        surface agrees with the frame's depth (photoreg.lighting.samples)."""
+        lc = self.session.lighting
+        st = lc.stride
         if st > 1:
             k = (st | 1, st | 1)  # odd box, centred on the sample pixel
             radiance = cv2.boxFilter(prep.linear, -1, k, borderType=cv2.BORDER_REFLECT)[::st, ::st]
@@ -69,7 +81,9 @@ class Pipeline:
             usable = usable > 0.999
         else:
             radiance, usable = prep.linear, prep.usable
-        keep = usable & maps.valid
+        keep = usable & maps.valid & agreement(prep.depth, self.intrinsics, pose, st, maps.depth, maps.normal,
+                                               lc.max_normal_angle,
+                                               lc.max_depth_gap_voxels * self.session.reconstruction.voxel_size)
         return radiance[keep], maps.vertex[keep], maps.normal[keep]
 
     def process(self, frame: Frame) -> FrameResult:
@@ -83,7 +97,7 @@ class Pipeline:
         with self._timed(t, "pose"):
             pose, pose_notes = self._pose(frame, prep)
         notes += pose_notes
-        F, diag = None, None
+        F, diag, composite = None, None, None
         if pose is not None:
             with self._timed(t, "fuse"):
                 self.volume.integrate(prep.depth, prep.linear, self.intrinsics, pose)
@@ -91,13 +105,26 @@ class Pipeline:
                 grid = self.volume.dense_grid()
                 maps = raycast_surface(grid, self.intrinsics, pose, rc.depth_min, rc.depth_max, stride=lc.stride)
             with self._timed(t, "sample"):
-                radiance, points, normals = self._samples(prep, maps)
+                radiance, points, normals = self._samples(prep, maps, pose)
             with self._timed(t, "transfer"):
                 tr = radiance_transfer(grid, points, normals, self.dirs, self.Y,
                                        offset=lc.ray_offset_voxels * rc.voxel_size, ray_length=lc.ray_length)
             with self._timed(t, "solve"):
-                F, diag = solve_lighting(radiance, tr.transfer, normals, tr.visible_fraction, self.solver_cfg,
-                                         prior=self.prev_F)
+                gain = self.exposure.gain(points, radiance)[0] if self.exposure is not None else 1.0
+                radiance = radiance / gain
+                previous = self.filter.prediction() if self.filter is not None else self.prev_F
+                sol = solve(radiance, tr.transfer, normals, tr.visible_fraction, self.solver_cfg, points=points,
+                            reference=previous)
+                F, diag = sol.lighting, sol.diagnostics
+                diag.exposure_gain = gain
+                if self.filter is not None:
+                    filtered, diag.change_detected = self.filter.update(sol)
+                    F = Lighting(filtered)
+                if self.exposure is not None:
+                    self.exposure.update(points, radiance)
+            if self.render is not None:
+                with self._timed(t, "render"):
+                    composite = self.render(prep.linear, prep.depth, grid, maps, pose, F.sh, gain)
         if F is None:  # no pose: keep the previous estimate (or darkness), flagged weak
             prev = self.prev_F if self.prev_F is not None else np.zeros((3, lc.bands * lc.bands))
             F, diag = Lighting(prev.copy()), SolveDiagnostics(notes=["no pose: previous estimate repeated"])
@@ -110,4 +137,4 @@ class Pipeline:
             self.prev_F = F.sh
         t["total"] = (time.perf_counter() - t_all) * 1000.0
         self.n_frames += 1
-        return FrameResult(frame.index, frame.timestamp, F, diag, sh.dominant_direction(F.sh), t)
+        return FrameResult(frame.index, frame.timestamp, F, diag, sh.dominant_direction(F.sh), t, composite=composite)

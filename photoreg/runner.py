@@ -87,6 +87,15 @@ def write_pictures(out: Path, r: FrameResult, pose) -> None:
     write_png_rgb(out / "sphere" / f"{name}.png", linear_to_srgb(tonemap(sphere)))
 
 
+def write_composite(out: Path, r: FrameResult, lightmap: np.ndarray) -> None:
+    """composite/NNNNNN.png (sRGB), composite_linear/NNNNNN.exr and lightmap/NNNNNN.exr: the linear
+    shadow-ratio layer on real surfaces (1 = unchanged, cam * ratio = real pixel), all atomic."""
+    name = f"{r.index:06d}"
+    write_png_rgb(out / "composite" / f"{name}.png", linear_to_srgb(r.composite))
+    write_exr(out / "composite_linear" / f"{name}.exr", r.composite)
+    write_exr(out / "lightmap" / f"{name}.exr", lightmap)
+
+
 def run_session(s: Session, quiet: bool = False, on_frame: Callable[[int, int], None] | None = None) -> dict:
     """Process a session; returns the summary (also written to summary.json).
 
@@ -118,6 +127,8 @@ def run_session(s: Session, quiet: bool = False, on_frame: Callable[[int, int], 
             k = s.output.pictures_every
             if k and (len(results) - 1) % k == 0:
                 write_pictures(out, r, frame.pose)
+            if r.composite is not None:
+                write_composite(out, r, pipe.render.last.ratio)
             progress.step(f"frame {frame.index}" + (" (weak)" if r.diagnostics.weak else ""))
             if on_frame is not None:
                 on_frame(len(results), len(indices))
@@ -132,6 +143,7 @@ def run_session(s: Session, quiet: bool = False, on_frame: Callable[[int, int], 
         "frames_skipped": skipped, "wall_s": round(wall, 3),
         "frames_per_s": round(len(results) / wall, 3) if wall > 0 else None,
         "weak_frames": [r.index for r in results if r.diagnostics.weak],
+        "objects": len(s.objects), "shadows": s.render.shadows if s.objects else None,
         "timings_ms_mean": {k: round(float(np.mean([r.timings_ms.get(k, 0.0) for r in results])), 3) for k in stages},
         "settings": {"lighting": vars(s.lighting), "reconstruction": vars(s.reconstruction),
                      "use_poses": s.recording.use_poses},
@@ -157,7 +169,8 @@ def print_summary(summary: dict, out: str) -> None:
     print(f"{summary['frames_processed']} frames on {summary['device']} at {summary['frames_per_s']} frames/s; "
           f"{len(summary['weak_frames'])} weak, {len(summary['frames_skipped'])} skipped")
     print(f"mean ms per stage: {stages}  (total {t.get('total', 0):.1f})")
-    print(f"outputs in {out}: lighting.jsonl, summary.json, envmap/, sphere/")
+    print(f"outputs in {out}: lighting.jsonl, summary.json, envmap/, sphere/"
+          + (", composite/, composite_linear/, lightmap/" if summary.get("objects") else ""))
 
 
 def run_command(args) -> int:

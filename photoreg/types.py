@@ -77,14 +77,31 @@ class SolveDiagnostics:
     residual_rms: float = 0.0
     weak: bool = True
     notes: list[str] = field(default_factory=list)
+    # Robust solve (photoreg.lighting.robust) and temporal filter; defaults = not computed.
+    bands: int = 0                           # band count chosen for this frame (0: not reported)
+    regularization: float | None = None      # relative Tikhonov strength chosen for this frame
+    albedo: list = field(default_factory=list)       # per-region linear RGB albedo (scale-fixed), largest first
+    inlier_fraction: float | None = None     # share of the robust weight kept after IRLS
+    unobserved: list[str] = field(default_factory=list)  # axis directions whose irradiance the data leave open
+    observed_fraction: float | None = None   # share of the sphere's normals whose irradiance the data determine
+    heldout_residual: float | None = None    # median |relative residual| on samples kept out of the fit
+    exposure_gain: float = 1.0               # frame gain removed before the solve (against the fused model)
+    change_detected: bool = False            # the temporal filter saw a lighting change and restarted
 
     def to_json(self) -> dict:
         cond = self.condition_number
-        return {"n_samples": int(self.n_samples),
-                "condition_number": float(cond) if np.isfinite(cond) else None,
-                "effective_rank": int(self.effective_rank),
-                "residual_rms": float(self.residual_rms), "weak": bool(self.weak),
-                "notes": list(self.notes)}
+        out = {"n_samples": int(self.n_samples),
+               "condition_number": float(cond) if np.isfinite(cond) else None,
+               "effective_rank": int(self.effective_rank),
+               "residual_rms": float(self.residual_rms), "weak": bool(self.weak),
+               "notes": list(self.notes)}
+        if self.bands:
+            out.update({"bands": int(self.bands), "regularization": self.regularization,
+                        "albedo": [[round(float(x), 5) for x in row] for row in self.albedo],
+                        "inlier_fraction": self.inlier_fraction, "unobserved": list(self.unobserved),
+                        "observed_fraction": self.observed_fraction, "heldout_residual": self.heldout_residual,
+                        "exposure_gain": float(self.exposure_gain), "change_detected": bool(self.change_detected)})
+        return out
 
 
 @dataclass

@@ -9,7 +9,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from photoreg.cli import main
-from photoreg.config import load_session
+from photoreg.config import LightingConfig, load_session
 from photoreg.recon.tracking import ate_rmse
 from photoreg.runner import run_session
 
@@ -31,7 +31,8 @@ def test_demo_run_writes_every_output(tmp_path):
     assert [r["frame"] for r in records] == [0, 1, 2, 3]
     assert finite_records(records)
     r = records[0]
-    assert r["bands"] == 3 and np.array(r["sh"]).shape == (3, 9)
+    bands = LightingConfig().bands
+    assert r["bands"] == bands and np.array(r["sh"]).shape == (3, bands * bands)
     assert {"preprocess", "fuse", "raycast", "transfer", "solve", "total"} <= set(r["timings_ms"])
     assert r["diagnostics"]["n_samples"] > 100
     assert not (out / "lighting.jsonl.partial").exists()

@@ -7,6 +7,7 @@ Lighting is compared only up to scale: the estimate is relative to the scene's u
     alpha = argmin ||alpha E_est - E_gt||, si_rmse = ||alpha E_est - E_gt||_rms / ||E_gt||_rms.
     0 is perfect; 1 is what an estimate with no usable signal (alpha = 0) scores.
   * colour_error_deg: angle between the mean RGB irradiance vectors (white balance of the light).
+  * flicker: temporal stability of a sequence of estimates (no ground truth needed), see flicker().
 """
 from __future__ import annotations
 
@@ -16,6 +17,7 @@ import cv2
 import numpy as np
 
 from ..lighting import sh
+from ..lighting.visualize import lit_sphere
 
 NO_DIRECTION_DEG = 90.0  # error charged when an estimate carries no direction (l=1 band zero or non-finite)
 ROI_DILATION_PX = 40
@@ -88,6 +90,42 @@ def lighting_metrics(sh_est: np.ndarray, sh_gt: np.ndarray) -> dict[str, float]:
             "irradiance_si_rmse_upper": irradiance_si_rmse(sh_est, sh_gt, UPPER_NORMALS),
             "irradiance_si_rmse_sphere": irradiance_si_rmse(sh_est, sh_gt, SPHERE_NORMALS),
             "colour_deg": colour_error_deg(sh_est, sh_gt)}
+
+
+def _flicker_view() -> np.ndarray:
+    """Fixed camera-to-world pose (OpenCV axes) of the flicker sphere: from +x, 30 degrees above the horizon."""
+    el = math.radians(30.0)
+    forward = -np.array([math.cos(el), 0.0, math.sin(el)])   # looking at the origin
+    right = np.cross(forward, [0.0, 0.0, 1.0])
+    right /= np.linalg.norm(right)
+    T = np.eye(4)
+    T[:3, :3] = np.stack([right, np.cross(forward, right), forward], axis=1)
+    return T
+
+
+FLICKER_VIEW = _flicker_view()
+
+
+def flicker(sequence, size: int = 64) -> float:
+    """Flicker E = mean over disc pixels, channels and consecutive frame pairs of exp(3 |I_t - I_(t-1)|) - 1,
+    I_t the diffuse sphere lit by estimate t (photoreg.lighting.visualize.lit_sphere, fixed view FLICKER_VIEW).
+
+    The images of a sequence share one scale, its 99th percentile pixel (so E ignores the estimate's
+    arbitrary albedo scale but sees every per-frame jump); pairs with a non-finite estimate are skipped;
+    0 for fewer than two usable frames."""
+    imgs = [lit_sphere(np.asarray(f, dtype=np.float64), FLICKER_VIEW, size) if np.isfinite(f).all() else None
+            for f in sequence]
+    u = (np.arange(size) + 0.5) / size * 2 - 1
+    disc = (u[None, :] ** 2 + u[:, None] ** 2) < 1
+    finite = [i[disc] for i in imgs if i is not None]
+    if len(finite) < 2:
+        return 0.0
+    ref = float(np.percentile(np.stack(finite), 99))
+    if not ref > 0:
+        return 0.0
+    terms = [np.mean(np.exp(3.0 * np.abs(b[disc] - a[disc]) / ref) - 1.0)
+             for a, b in zip(imgs, imgs[1:]) if a is not None and b is not None]
+    return float(np.mean(terms)) if terms else 0.0
 
 
 def summarize(values) -> dict[str, float | None]:

@@ -1,7 +1,8 @@
 """`photoreg score OUT --gt RECORDING`: official accuracy of a run against the recording's ground truth.
 
 Lighting: every frame of OUT/lighting.jsonl against RECORDING/lighting_gt.json (metrics in
-photoreg.bench.metrics; all are scale-invariant, so the GT "exposure" plays no part). Frames whose
+photoreg.bench.metrics; all are scale-invariant, so the GT "exposure" plays no part), plus the
+sequence's flicker (metrics.flicker, no ground truth involved). Frames whose
 SH is non-finite, and frames of the recording with no line at all, are counted in
 `nonfinite_fraction` and left out of the other metrics.
 
@@ -141,6 +142,7 @@ def score_lighting(estimates: dict[int, np.ndarray], gt: np.ndarray, n_expected:
     return {"n_frames": len(frames), "n_scored": len(frames) - n_bad, "n_nonfinite": n_nonfinite,
             "n_missing": n_missing, "nonfinite_fraction": n_bad / len(frames) if frames else 0.0,
             "gt_bands": sh.bands_of(gt.shape[1]), "estimate_bands": est_bands,
+            "flicker": metrics.flicker([estimates[i] for i in sorted(estimates)]),
             "metrics": {k: metrics.summarize(r.get(k) for r in per_frame)
                         for k in LIGHTING_METRICS if k != "direction_deg" or gt_has_dir},
             "notes": notes, "per_frame": per_frame}
@@ -219,7 +221,9 @@ def format_report(result: dict) -> str:
              f"lighting (GT {lt['gt_bands']} bands, estimate {', '.join(map(str, lt['estimate_bands'])) or '-'} bands): "
              f"{lt['n_frames']} frames, {lt['n_scored']} scored, non-finite or missing "
              f"{lt['n_nonfinite'] + lt['n_missing']} ({100 * lt['nonfinite_fraction']:.1f}%)"]
-    lines += _table(lt["metrics"]) + [f"  note: {n}" for n in lt["notes"]]
+    lines += _table(lt["metrics"])
+    lines.append(f"  {'flicker (sequence)':28s}{lt['flicker']:10.4g}")
+    lines += [f"  note: {n}" for n in lt["notes"]]
     if "composite" in result:
         c = result["composite"]
         lines.append(f"composite (ROI = object mask dilated by {c['roi_dilation_px']} px, linear RGB): "

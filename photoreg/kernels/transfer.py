@@ -5,8 +5,8 @@ of D equal-area directions covering the whole sphere: R_i = (1/pi) (4 pi / D) su
 
 Two passes, so that visibility against several grids shares one projection:
 1. occlusion: one thread per (point, direction) marches the ray from x + n * offset and writes bit
-   flags per direction: REAL when the real-geometry grid blocks it. Virtual objects (a later issue)
-   pass a second grid to the same kernel and set VIRTUAL on the same ray, so one pass serves both;
+   flags per direction: REAL when the real-geometry grid blocks it, VIRTUAL when the optional second
+   grid (the voxelised virtual objects, photoreg.render.scene) blocks it, so one pass serves both;
 2. projection: one thread per (point, coefficient) sums the hemisphere directions whose flags under
    `mask` are clear (mask REAL -> R_TR; REAL | VIRTUAL -> R_TRV), plus the visible fraction.
 """
@@ -35,6 +35,8 @@ class TransferResult:
     transfer_wp: wp.array2d
     visible_fraction_wp: wp.array
     occlusion_wp: wp.array2d       # (N, D) uint8 bit flags per direction (REAL, VIRTUAL)
+    transfer_rv: np.ndarray | None = None          # (N, B*B) R_TRV (real + virtual occluding), with a virtual grid
+    visible_fraction_rv: np.ndarray | None = None  # (N,) visible fraction under real + virtual geometry
 
 
 def make_direction_set(rays: int, bands: int, seed: int | None = None) -> tuple[np.ndarray, np.ndarray]:
@@ -73,14 +75,19 @@ def ray_blocked(sdf: wp.array3d(dtype=wp.float32), empty: wp.array3d(dtype=wp.ui
 def _occlusion(sdf: wp.array3d(dtype=wp.float32), empty: wp.array3d(dtype=wp.uint8), cell: int, origin: wp.vec3,
                voxel: float, trunc: float, points: wp.array(dtype=wp.vec3), normals: wp.array(dtype=wp.vec3),
                dirs: wp.array(dtype=wp.vec3), offset: float, ray_length: float, min_step: float,
-               occ: wp.array2d(dtype=wp.uint8)):
+               has_virtual: int, vsdf: wp.array3d(dtype=wp.float32), vempty: wp.array3d(dtype=wp.uint8), vcell: int,
+               vorigin: wp.vec3, vvoxel: float, vtrunc: float, vmin_step: float, occ: wp.array2d(dtype=wp.uint8)):
     i, k = wp.tid()
     n = normals[i]
     w = dirs[k]
     bits = int(0)
     if wp.dot(n, w) > 0.0:
-        if ray_blocked(sdf, empty, cell, origin, voxel, trunc, points[i] + n * offset, w, ray_length, min_step):
+        o = points[i] + n * offset
+        if ray_blocked(sdf, empty, cell, origin, voxel, trunc, o, w, ray_length, min_step):
             bits = REAL
+        if has_virtual != 0:
+            if ray_blocked(vsdf, vempty, vcell, vorigin, vvoxel, vtrunc, o, w, ray_length, vmin_step):
+                bits = bits | VIRTUAL
     occ[i, k] = wp.uint8(bits)
 
 
@@ -131,12 +138,16 @@ def _as_warp(a, dtype, device: str, what: str, inner: int | None):
 
 
 def radiance_transfer(grid: DenseGrid, points, normals, dirs, ytable, offset: float, ray_length: float,
-                      device: str | None = None, min_step_voxels: float = 0.5) -> TransferResult:
+                      device: str | None = None, min_step_voxels: float = 0.5,
+                      virtual: DenseGrid | None = None) -> TransferResult:
     """R_TR and visible fraction at world points (N, 3) with unit world normals (N, 3; zero = skip),
-    numpy or Warp (vec3, any shape: flattened), over the direction set from make_direction_set."""
+    numpy or Warp (vec3, any shape: flattened), over the direction set from make_direction_set.
+    With `virtual` (the virtual objects' SDF grid) the same ray pass also gives R_TRV (transfer_rv)."""
     device = grid.device if device is None else str(wp.get_device(device))
     if device != grid.device:
         raise ValueError(f"radiance_transfer: grid lives on {grid.device}, asked to run on {device}")
+    if virtual is not None and virtual.device != device:
+        raise ValueError(f"radiance_transfer: virtual grid lives on {virtual.device}, expected {device}")
     if not (offset >= 0 and ray_length > 0 and min_step_voxels > 0):
         raise ValueError(f"radiance_transfer: need offset >= 0, ray_length > 0, min_step_voxels > 0 "
                          f"(got {offset}, {ray_length}, {min_step_voxels})")
@@ -153,13 +164,25 @@ def radiance_transfer(grid: DenseGrid, points, normals, dirs, ytable, offset: fl
     occ = wp.zeros((N, D), dtype=wp.uint8, device=device)
     transfer = wp.zeros((N, K), dtype=wp.float32, device=device)
     visible = wp.zeros(N, dtype=wp.float32, device=device)
+    v = grid if virtual is None else virtual  # a stand-in when there is no virtual grid (never marched)
+    transfer_rv = visible_rv = None
     if N > 0:
         wp.launch(_occlusion, dim=(N, D), device=device,
                   inputs=[grid.sdf, grid.empty, int(grid.cell), wp.vec3(*grid.origin), float(grid.voxel_size),
                           float(grid.trunc), p, n, w, float(offset), float(ray_length),
-                          float(min_step_voxels * grid.voxel_size)],
+                          float(min_step_voxels * grid.voxel_size), int(virtual is not None), v.sdf, v.empty,
+                          int(v.cell), wp.vec3(*v.origin), float(v.voxel_size), float(v.trunc),
+                          float(min_step_voxels * v.voxel_size)],
                   outputs=[occ])
         wp.launch(_project, dim=(N, K), device=device, inputs=[n, w, y, occ, REAL, 4.0 / D],
                   outputs=[transfer, visible])
+    if virtual is not None:
+        trv = wp.zeros((N, K), dtype=wp.float32, device=device)
+        vrv = wp.zeros(N, dtype=wp.float32, device=device)
+        if N > 0:
+            wp.launch(_project, dim=(N, K), device=device, inputs=[n, w, y, occ, REAL | VIRTUAL, 4.0 / D],
+                      outputs=[trv, vrv])
+        transfer_rv, visible_rv = trv.numpy(), vrv.numpy()
     return TransferResult(transfer=transfer.numpy(), visible_fraction=visible.numpy(), transfer_wp=transfer,
-                          visible_fraction_wp=visible, occlusion_wp=occ)
+                          visible_fraction_wp=visible, occlusion_wp=occ, transfer_rv=transfer_rv,
+                          visible_fraction_rv=visible_rv)

@@ -19,6 +19,9 @@ The system is solved through the SVD of the weighted design sqrt(W) A with Tikho
 s / (s^2 + lambda), i.e. exactly the least-squares solution of the stacked system
 [sqrt(W) A; sqrt(lambda) I] f = [sqrt(W) b; sqrt(lambda) f_prior]; the normal equations are never
 formed or inverted. lambda = `regularization` * trace(A^T W A) / K, so it is relative to the data.
+
+That is the paper's solver. The robust settings (loss, per-region albedo, order selection; see
+photoreg.lighting.robust) switch solve_lighting over to photoreg.lighting.robust.solve.
 """
 from __future__ import annotations
 
@@ -31,6 +34,10 @@ from . import sh
 
 WEIGHTINGS = ("bins", "density", "none")
 MODES = ("rgb", "white")
+LOSSES = ("none", "huber", "tukey")
+ALBEDOS = ("single", "regions")
+ALBEDO_REFERENCES = ("max", "largest", "mean")
+SELECTIONS = ("fixed", "gcv", "holdout", "aic", "bic")
 
 
 @dataclass
@@ -53,6 +60,23 @@ class SolverConfig:
     min_samples_factor: float = 3.0    # fewer than factor * K usable samples -> weak
     max_condition: float = 1e4         # condition number of the weighted design above this -> weak
     rank_rtol: float = 1e-6            # singular values above rank_rtol * s_max count toward the rank
+    # A bin holding fewer than this share of the samples gets proportionally less than a full bin's weight:
+    # a few stray normals (TSDF edges) must not carry as much as the whole floor. 0 = the paper's rule.
+    bin_min_fraction: float = 0.0
+
+    # --- robust settings (photoreg.lighting.robust); the defaults here are the paper's solver ---
+    loss: str = "none"                 # "none" | "huber" | "tukey": IRLS weights on luminance residuals
+    loss_scale: float | None = None    # tuning constant in robust sigmas (None: 1.345 huber, 4.685 tukey)
+    iterations: int = 12               # alternations of albedo, lighting and robust weights
+    albedo: str = "single"             # "single" | "regions": one albedo, or one per region found in the data
+    albedo_reference: str = "max"      # scale fix: "max" (per-channel max over regions = 1), "largest", "mean"
+    chroma_bandwidth: float = 0.08     # region clustering cell in log-chromaticity (best of 0.05/0.08/0.12)
+    intensity_bandwidth: float = 0.5   # ... and in log albedo (second pass, shading removed)
+    min_region_fraction: float = 0.005  # a region needs this share of the samples (small objects count)
+    select: str = "fixed"              # order/regularisation choice: fixed | gcv | holdout | aic | bic
+    max_bands: int = 5                 # largest band count tried by `select`
+    lambdas: tuple = (1e-3, 3e-3, 1e-2, 3e-2, 1e-1)  # relative regularisations tried by `select`
+    holdout_fraction: float = 0.0      # share of samples kept out of the fit to report a held-out residual
 
     def __post_init__(self) -> None:
         if self.bands < 1:
@@ -63,13 +87,43 @@ class SolverConfig:
             raise ValueError(f"mode must be one of {MODES}, got {self.mode!r}")
         if self.grid_bins < 1 or self.density_bandwidth <= 0 or self.regularization < 0:
             raise ValueError("grid_bins >= 1, density_bandwidth > 0 and regularization >= 0 are required")
+        for name, value, choices in (("loss", self.loss, LOSSES), ("albedo", self.albedo, ALBEDOS),
+                                     ("albedo_reference", self.albedo_reference, ALBEDO_REFERENCES),
+                                     ("select", self.select, SELECTIONS)):
+            if value not in choices:
+                raise ValueError(f"{name} must be one of {choices}, got {value!r}")
+        if not (0 <= self.bin_min_fraction < 1 and 0 <= self.holdout_fraction < 0.5 and self.iterations >= 1
+                and self.max_bands >= 1 and self.lambdas and min(self.lambdas) >= 0):
+            raise ValueError("need 0 <= bin_min_fraction < 1, 0 <= holdout_fraction < 0.5, iterations >= 1, "
+                             "max_bands >= 1 and non-negative lambdas")
+
+    @classmethod
+    def from_lighting(cls, lc) -> "SolverConfig":
+        """The solve settings of a session's [lighting] table (photoreg.config.LightingConfig)."""
+        return cls(bands=lc.bands, weighting=lc.weighting, regularization=lc.regularization,
+                   min_visible=lc.min_visible, mode=lc.mode, bin_min_fraction=lc.bin_min_fraction, loss=lc.loss,
+                   albedo=lc.albedo, albedo_reference=lc.albedo_reference, select=lc.select,
+                   max_bands=lc.max_bands, max_samples=lc.max_samples)
+
+    @property
+    def robust(self) -> bool:
+        """Whether any robust setting is on (then solve_lighting runs photoreg.lighting.robust.solve)."""
+        return (self.loss != "none" or self.albedo != "single" or self.select != "fixed"
+                or self.holdout_fraction > 0)
+
+    @property
+    def fit_bands(self) -> int:
+        """Band count of the transfer the solve needs: max_bands when selecting, else bands."""
+        return self.max_bands if self.select != "fixed" else self.bands
 
 
-def bin_weights(normals: np.ndarray, grid_bins: int) -> np.ndarray:
+def bin_weights(normals: np.ndarray, grid_bins: int, min_fraction: float = 0.0) -> np.ndarray:
     """Per-sample weights 1/(Q_c * P) on an equal-area grid of normals, rescaled to mean 1.
 
     Bins are equal-area: `grid_bins` bands uniform in z = cos(theta) times 2*grid_bins uniform in
-    azimuth, so an even spread of normals gives even counts.
+    azimuth, so an even spread of normals gives even counts. With min_fraction > 0 a bin holding
+    Q_c < min_fraction * N samples carries only Q_c / (min_fraction * N) of a full bin's weight, so
+    that a handful of stray normals cannot outweigh a well-sampled surface.
     """
     n = np.asarray(normals, dtype=np.float64)
     if n.shape[0] == 0:
@@ -78,7 +132,8 @@ def bin_weights(normals: np.ndarray, grid_bins: int) -> np.ndarray:
     phi = np.arctan2(n[:, 1], n[:, 0])  # [-pi, pi]
     ip = np.clip(((phi + np.pi) / (2 * np.pi) * 2 * grid_bins).astype(np.int64), 0, 2 * grid_bins - 1)
     _, inverse, counts = np.unique(iz * (2 * grid_bins) + ip, return_inverse=True, return_counts=True)
-    w = 1.0 / (counts[inverse] * len(counts))
+    share = np.minimum(1.0, counts / (min_fraction * n.shape[0])) if min_fraction > 0 else np.ones(len(counts))
+    w = share[inverse] / counts[inverse]
     return w * (len(w) / w.sum())
 
 
@@ -137,6 +192,16 @@ def regularized_lstsq(design: np.ndarray, rhs: np.ndarray, lam: float, prior: np
         return x_s * (cb / ca), s * ca
 
 
+def normal_weights(normals: np.ndarray, cfg: SolverConfig) -> np.ndarray:
+    """Sample weights (mean 1) from the distribution of the (non-zero) normals, by cfg.weighting."""
+    nrm = normals / np.linalg.norm(normals, axis=1, keepdims=True)
+    if cfg.weighting == "bins":
+        return bin_weights(nrm, cfg.grid_bins, cfg.bin_min_fraction)
+    if cfg.weighting == "density":
+        return density_weights(nrm, cfg.density_bandwidth, cfg.seed)
+    return np.ones(nrm.shape[0])
+
+
 def _usable(radiance, transfer, normals, visible, mask, cfg) -> tuple[np.ndarray, list[str]]:
     """Boolean mask of samples fit to enter the solve, with notes on what was dropped and why."""
     notes: list[str] = []
@@ -159,6 +224,39 @@ def _usable(radiance, transfer, normals, visible, mask, cfg) -> tuple[np.ndarray
     return keep, notes
 
 
+def select_samples(radiance, transfer, normals, visible, cfg: SolverConfig, bands: int, prior=None, mask=None):
+    """Checked float64 inputs, transfer cut to `bands`, the indices of the usable (subsampled) samples,
+    the prior cut to `bands` (None when absent or unusable) and notes on what was dropped.
+
+    Shapes that do not match raise ValueError; bad data only drops samples."""
+    radiance = np.asarray(radiance, dtype=np.float64).reshape(-1, 3)
+    transfer = np.asarray(transfer, dtype=np.float64)
+    normals = np.asarray(normals, dtype=np.float64).reshape(-1, 3)
+    visible = np.asarray(visible, dtype=np.float64).reshape(-1)
+    k = bands * bands
+    n_all = radiance.shape[0]
+    if transfer.ndim != 2 or transfer.shape[1] < k:
+        raise ValueError(f"transfer must be (N, >= {k}) for {bands} bands, got {transfer.shape}")
+    if not (transfer.shape[0] == normals.shape[0] == visible.shape[0] == n_all):
+        raise ValueError(f"sample counts differ: radiance {n_all}, transfer {transfer.shape[0]}, "
+                         f"normals {normals.shape[0]}, visible {visible.shape[0]}")
+    if mask is not None and np.shape(mask) != (n_all,):
+        raise ValueError(f"mask shape {np.shape(mask)} does not match {n_all} samples")
+    transfer = transfer[:, :k]
+    notes: list[str] = []
+    if prior is not None:
+        prior = sh.truncate(np.asarray(prior, dtype=np.float64), bands)
+        if prior.shape[0] != 3 or not np.isfinite(prior).all():
+            notes.append("prior ignored (not a finite 3-channel SH)")
+            prior = None
+    keep, drop_notes = _usable(radiance, transfer, normals, visible, mask, cfg)
+    notes += drop_notes
+    idx = np.flatnonzero(keep)
+    if cfg.max_samples is not None and idx.size > cfg.max_samples:
+        idx = np.sort(np.random.default_rng(cfg.seed).choice(idx, cfg.max_samples, replace=False))
+    return radiance, transfer, normals, idx, prior, notes
+
+
 def solve_lighting(radiance: np.ndarray, transfer: np.ndarray, normals: np.ndarray, visible: np.ndarray,
                    cfg: SolverConfig | None = None, prior: np.ndarray | None = None,
                    mask: np.ndarray | None = None) -> tuple[Lighting, SolveDiagnostics]:
@@ -168,49 +266,24 @@ def solve_lighting(radiance: np.ndarray, transfer: np.ndarray, normals: np.ndarr
     occlusion filter; `mask` (N,) optionally restricts the samples; `prior` (3, B'*B') is a previous
     lighting to regularise toward (instead of toward zero) and to fall back on. Shapes that do not
     match raise ValueError; data problems never raise: they give a finite, weak result with notes.
+    A config with robust settings (SolverConfig.robust) is solved by photoreg.lighting.robust.solve.
     """
     cfg = cfg or SolverConfig()
-    radiance = np.asarray(radiance, dtype=np.float64).reshape(-1, 3)
-    transfer = np.asarray(transfer, dtype=np.float64)
-    normals = np.asarray(normals, dtype=np.float64).reshape(-1, 3)
-    visible = np.asarray(visible, dtype=np.float64).reshape(-1)
+    if cfg.robust:
+        from .robust import solve
+        sol = solve(radiance, transfer, normals, visible, cfg, prior=prior, mask=mask)
+        return sol.lighting, sol.diagnostics
     k = cfg.bands * cfg.bands
-    n_all = radiance.shape[0]
-    if transfer.ndim != 2 or transfer.shape[1] < k:
-        raise ValueError(f"transfer must be (N, >= {k}) for {cfg.bands} bands, got {transfer.shape}")
-    if not (transfer.shape[0] == normals.shape[0] == visible.shape[0] == n_all):
-        raise ValueError(f"sample counts differ: radiance {n_all}, transfer {transfer.shape[0]}, "
-                         f"normals {normals.shape[0]}, visible {visible.shape[0]}")
-    if mask is not None and np.shape(mask) != (n_all,):
-        raise ValueError(f"mask shape {np.shape(mask)} does not match {n_all} samples")
-    transfer = transfer[:, :k]
-
-    notes: list[str] = []
-    if prior is not None:
-        prior = sh.truncate(np.asarray(prior, dtype=np.float64), cfg.bands)
-        if prior.shape[0] != 3 or not np.isfinite(prior).all():
-            notes.append("prior ignored (not a finite 3-channel SH)")
-            prior = None
+    radiance, transfer, normals, idx, prior, notes = select_samples(radiance, transfer, normals, visible, cfg,
+                                                                    cfg.bands, prior, mask)
     fallback = prior if prior is not None else np.zeros((3, k))
-
-    keep, drop_notes = _usable(radiance, transfer, normals, visible, mask, cfg)
-    notes += drop_notes
-    idx = np.flatnonzero(keep)
-    if cfg.max_samples is not None and idx.size > cfg.max_samples:
-        idx = np.sort(np.random.default_rng(cfg.seed).choice(idx, cfg.max_samples, replace=False))
     n = idx.size
     if n == 0:
         notes.append("no usable samples: returning the " + ("prior" if prior is not None else "zero lighting"))
         return Lighting(fallback.copy()), SolveDiagnostics(n_samples=0, weak=True, notes=notes)
 
     a, obs, nrm = transfer[idx], radiance[idx], normals[idx]
-    nrm = nrm / np.linalg.norm(nrm, axis=1, keepdims=True)
-    if cfg.weighting == "bins":
-        w = bin_weights(nrm, cfg.grid_bins)
-    elif cfg.weighting == "density":
-        w = density_weights(nrm, cfg.density_bandwidth, cfg.seed)
-    else:
-        w = np.ones(n)
+    w = normal_weights(nrm, cfg)
     sw = np.sqrt(w)[:, None]
 
     if cfg.mode == "white":

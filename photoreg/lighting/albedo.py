@@ -1,0 +1,157 @@
+"""Albedo regions: which samples share one albedo, as far as the data show it, and the albedo scale fix.
+
+The lighting model I = rho * R.F holds one albedo per surface. Regions are found by clustering the
+samples in colour space, on a grid of cells (mode seeking on a histogram, so the number of regions
+follows the data instead of being fixed):
+  * first pass, no lighting known: log-chromaticity (ln R/G, ln B/G) of the observed radiance; a
+    change of intensity alone (shading, shadows) keeps a sample in its region;
+  * second pass, with a lighting estimate: each region is split where the log-luminance of its albedo
+    estimates I / (R.F) (shading divided out) has separate modes, so surfaces of one colour but
+    different brightness (a black and a white half of one floor) separate, while a shadow does not.
+Cells of `bandwidth` in each feature are counted, counts are summed over each cell's 3^d neighbourhood,
+local maxima holding at least `min_count` samples become region centres, every sample goes to the
+nearest centre (two k-means refinements) and samples farther than FAR_CELLS from all centres, or in
+regions smaller than `min_count`, get label -1 (left out of the fit).
+
+Scale: rho * F is unchanged by rho / s, F * s per channel, so one rule fixes s (REFERENCES).
+"""
+from __future__ import annotations
+
+import itertools
+
+import numpy as np
+
+FAR_CELLS = 3.0          # a sample farther than this (in cells) from every centre belongs to no region
+REFERENCES = {
+    "max": "per channel, the largest albedo over regions holding >= 5% of the samples is 1 (max-RGB)",
+    "largest": "the region holding the most samples has albedo 1",
+    "mean": "the mean albedo over regions (each region counted once) is 1 (grey world)",
+}
+
+
+def colour_features(rgb: np.ndarray, with_intensity: bool, floor: float = 1e-3) -> np.ndarray:
+    """(ln R/G, ln B/G[, ln luminance]) of linear RGB (N, 3); channels below `floor` times the median
+    channel value are clamped (relative, so the features do not depend on the exposure)."""
+    x = np.asarray(rgb, dtype=np.float64)
+    finite = x[np.isfinite(x) & (x > 0)]
+    low = floor * (float(np.median(finite)) if finite.size else 1.0)
+    x = np.maximum(np.nan_to_num(x, nan=low, posinf=low / floor ** 2, neginf=low), low)
+    f = [np.log(x[:, 0] / x[:, 1]), np.log(x[:, 2] / x[:, 1])]
+    if with_intensity:
+        f.append(np.log(x @ np.array([0.2126, 0.7152, 0.0722])))
+    return np.stack(f, axis=1)
+
+
+def cluster(features: np.ndarray, bandwidth, min_count: int) -> np.ndarray:
+    """Labels (N,) of histogram-mode clusters of `features` (N, d), largest cluster 0, -1 = none.
+
+    `bandwidth` (scalar or per feature) is the cell size; see the module docstring."""
+    f = np.asarray(features, dtype=np.float64)
+    n, d = f.shape
+    labels = -np.ones(n, dtype=np.int64)
+    ok = np.isfinite(f).all(axis=1)
+    if ok.sum() < max(min_count, 1):
+        return labels
+    z = f[ok] / np.asarray(bandwidth, dtype=np.float64)
+    lo = np.floor(z.min(axis=0)) - 1
+    cells = (np.floor(z) - lo).astype(np.int64)
+    base = int(cells.max()) + 2
+    if base ** d > 2 ** 62:  # absurd spread (garbage inputs): clip to a manageable grid
+        cells = np.clip(cells, 0, 2 ** (62 // d) - 3)
+        base = int(cells.max()) + 2
+    weights = base ** np.arange(d, dtype=np.int64)
+    keys, inverse, counts = np.unique(cells @ weights, return_inverse=True, return_counts=True)
+    offsets = np.array(list(itertools.product((-1, 0, 1), repeat=d)), dtype=np.int64) @ weights
+
+    def lookup(values: np.ndarray, at: np.ndarray) -> np.ndarray:
+        pos = np.clip(np.searchsorted(keys, at), 0, len(keys) - 1)
+        return np.where(keys[pos] == at, values[pos], 0)
+
+    smooth = sum(lookup(counts, keys + o) for o in offsets)
+    peak = smooth >= min_count
+    for o in offsets[offsets != 0]:
+        nb = lookup(smooth, keys + o)
+        peak &= (smooth > nb) | ((smooth == nb) & (o > 0))  # ties: the lower key wins
+    if not peak.any():
+        return labels
+    cell_centres = np.zeros((len(keys), d))
+    np.add.at(cell_centres, inverse, z)
+    centres = cell_centres[peak] / counts[peak][:, None]
+    for _ in range(2):  # k-means refinement
+        dist = ((z[:, None, :] - centres[None]) ** 2).sum(axis=2)
+        near = dist.argmin(axis=1)
+        sums = np.zeros_like(centres)
+        np.add.at(sums, near, z)
+        num = np.bincount(near, minlength=len(centres))
+        centres = np.where(num[:, None] > 0, sums / np.maximum(num, 1)[:, None], centres)
+    dist = ((z[:, None, :] - centres[None]) ** 2).sum(axis=2)
+    near = dist.argmin(axis=1)
+    near[np.sqrt(dist.min(axis=1)) > FAR_CELLS] = -1
+    size = np.bincount(near[near >= 0], minlength=len(centres))
+    order = [c for c in np.argsort(-size, kind="stable") if size[c] >= min_count]
+    remap = -np.ones(len(centres) + 1, dtype=np.int64)
+    remap[np.array(order, dtype=np.int64)] = np.arange(len(order))
+    labels[ok] = remap[near]  # near = -1 picks remap[-1] = -1
+    return labels
+
+
+def split_by_intensity(labels: np.ndarray, log_albedo: np.ndarray, bandwidth: float, min_count: int) -> np.ndarray:
+    """Split each region where its log albedo estimates (shading divided out) form separate modes
+    (cluster() in 1-D with cell `bandwidth`); samples between modes stay with the region's largest part.
+    Returns new labels, largest region first."""
+    out = labels.copy()
+    nxt = int(labels.max()) + 1 if labels.size else 0
+    for r in range(nxt):
+        sel = np.flatnonzero(labels == r)
+        parts = cluster(log_albedo[sel, None], bandwidth, min_count)
+        for p in range(1, int(parts.max()) + 1 if parts.size else 0):
+            out[sel[parts == p]] = nxt
+            nxt += 1
+    size = np.bincount(out[out >= 0], minlength=nxt)
+    remap = -np.ones(nxt + 1, dtype=np.int64)
+    order = np.argsort(-size, kind="stable")
+    remap[order] = np.arange(nxt)
+    return remap[out]
+
+
+def reference_scale(rho: np.ndarray, counts: np.ndarray, rule: str) -> np.ndarray:
+    """Per-channel scale s (3,) such that rho / s obeys `rule` (REFERENCES); regions with no samples ignored."""
+    rho = np.asarray(rho, dtype=np.float64)
+    used = np.asarray(counts) > 0
+    if not used.any():
+        return np.ones(3)
+    if rule == "largest":
+        s = rho[int(np.argmax(counts))]
+    elif rule == "mean":
+        s = rho[used].mean(axis=0)
+    elif rule == "max":
+        big = np.asarray(counts) >= 0.05 * np.sum(counts)
+        s = rho[big if big.any() else used].max(axis=0)
+    else:
+        raise ValueError(f"albedo reference must be one of {sorted(REFERENCES)}, got {rule!r}")
+    return np.where(np.isfinite(s) & (s > 0), s, 1.0)
+
+
+def merge_similar(labels: np.ndarray, rho: np.ndarray, tolerance: float) -> tuple[np.ndarray, int]:
+    """Merge regions whose albedos differ by less than `tolerance` in every channel's log (the data
+    do not tell them apart); returns relabelled samples (largest first) and the region count."""
+    m = len(rho)
+    parent = list(range(m))
+
+    def root(i):
+        while parent[i] != i:
+            i = parent[i]
+        return i
+
+    logs = np.log(np.maximum(rho, 1e-6))
+    for a, b in itertools.combinations(range(m), 2):
+        if np.abs(logs[a] - logs[b]).max() < tolerance:
+            parent[root(b)] = root(a)
+    roots = np.array([root(i) for i in range(m)] + [-1])
+    merged = roots[labels]  # labels -1 -> -1
+    size = np.bincount(merged[merged >= 0], minlength=m)
+    order = np.argsort(-size, kind="stable")
+    order = order[size[order] > 0]
+    remap = -np.ones(m + 1, dtype=np.int64)
+    remap[order] = np.arange(len(order))
+    return remap[merged], len(order)

@@ -1,0 +1,70 @@
+"""Per-frame exposure gain against a fused surface radiance map (real cameras run auto-exposure).
+
+A Lambertian surface point has the same radiance from every view, so a frame whose pixels are all
+brighter than the fused model by one factor had its exposure changed, not its lighting. The map
+holds the running mean luminance of the gain-corrected samples in world cells of `cell` metres
+(a hashed sparse grid, independent of the TSDF). A frame's gain is exp(median(log I - log map)) over
+the cells it shares with the map (median: robust to highlights, new shadows and misregistration);
+its radiance is divided by the gain before the solve, so the lighting stays on the first frame's
+exposure scale instead of jumping with the camera's. Cells forget after `memory` frames (running
+mean with capped count), so after a real lighting change the map follows. Without enough overlap the
+last gain is kept.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from . import sh
+
+DARK = 1e-3  # luminance below this carries no exposure information (noise, quantisation)
+
+
+class ExposureTracker:
+    """Fused luminance per world cell and the running exposure gain (module docstring)."""
+
+    def __init__(self, cell: float = 0.02, memory: int = 10, min_matches: int = 30):
+        if not (cell > 0 and memory >= 1 and min_matches >= 1):
+            raise ValueError("cell > 0, memory >= 1 and min_matches >= 1 are required")
+        self.cell, self.memory, self.min_matches = cell, memory, min_matches
+        self.keys = np.zeros(0, dtype=np.int64)
+        self.lum = np.zeros(0)
+        self.count = np.zeros(0)
+        self.last_gain = 1.0
+
+    def _cells(self, points: np.ndarray, radiance: np.ndarray):
+        """Unique cell keys of the usable samples and their mean luminance."""
+        p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+        lum = np.asarray(radiance, dtype=np.float64).reshape(-1, 3) @ sh.LUMINANCE
+        ok = np.isfinite(p).all(axis=1) & np.isfinite(lum) & (lum > DARK)
+        c = np.floor(p[ok] / self.cell).astype(np.int64) + (1 << 20)
+        c = np.clip(c, 0, (1 << 21) - 1)
+        keys = (c[:, 0] << 42) | (c[:, 1] << 21) | c[:, 2]
+        uniq, inv = np.unique(keys, return_inverse=True)
+        return uniq, np.bincount(inv, weights=lum[ok]) / np.bincount(inv)
+
+    def gain(self, points: np.ndarray, radiance: np.ndarray) -> tuple[float, int]:
+        """(gain of this frame relative to the map, number of cells compared); the last gain when
+        fewer than min_matches cells overlap (1 for the first frame)."""
+        keys, lum = self._cells(points, radiance)
+        pos = np.clip(np.searchsorted(self.keys, keys), 0, max(len(self.keys) - 1, 0))
+        hit = (pos < len(self.keys)) & (self.keys[pos] == keys) if len(self.keys) else np.zeros(len(keys), bool)
+        n = int(hit.sum())
+        if n >= self.min_matches:
+            g = float(np.exp(np.median(np.log(lum[hit]) - np.log(self.lum[pos[hit]]))))
+            if np.isfinite(g) and g > 0:
+                self.last_gain = g
+        return self.last_gain, n
+
+    def update(self, points: np.ndarray, radiance: np.ndarray) -> None:
+        """Fuse gain-corrected samples into the map (running mean, count capped at `memory`)."""
+        keys, lum = self._cells(points, radiance)
+        if keys.size == 0:
+            return
+        all_keys = np.union1d(self.keys, keys)
+        new_lum, new_count = np.zeros(len(all_keys)), np.zeros(len(all_keys))
+        old = np.searchsorted(all_keys, self.keys)
+        new_lum[old], new_count[old] = self.lum, self.count
+        at = np.searchsorted(all_keys, keys)
+        new_count[at] = np.minimum(new_count[at] + 1, self.memory)
+        new_lum[at] += (lum - new_lum[at]) / new_count[at]
+        self.keys, self.lum, self.count = all_keys, new_lum, new_count

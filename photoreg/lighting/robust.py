@@ -1,0 +1,392 @@
+"""Robust per-frame lighting solve: IRLS, per-region albedo by alternation, model order selection.
+
+Model: I_i = rho_{r(i)} * (R_i . F) per channel, with r(i) the albedo region of sample i
+(photoreg.lighting.albedo; one region when cfg.albedo = "single", which is the paper's model).
+The fit alternates, cfg.iterations times:
+  1. F given albedos and weights: per channel the weighted Tikhonov system
+     (G_c + lam_c I) f = g_c + lam_c f_prior, G_c = sum_i w_i rho_ic^2 R_i R_i^T, g_c = sum_i w_i rho_ic I_ic R_i,
+     lam_c = regularization * trace(G_c) / K (relative, as in the paper's solver);
+  2. albedos given F, in closed form per region and channel: rho = sum w I S / sum w S^2 (S = R.F),
+     then the scale fix (albedo.reference_scale) moves the common factor into F; regions whose
+     albedos the data cannot tell apart are merged. After a third of the iterations the regions are
+     found again on the albedo estimates I / S (shading divided out; albedo.py);
+  3. robust weights from the luminance residuals e_i scaled by 1.4826 * MAD (cfg.loss: Huber or
+     Tukey's biweight): specular highlights, unexplained shadows, colour-depth misalignment and stray
+     normals stop pulling the estimate.
+Sample weights are the normal-distribution weights (solver.normal_weights) times the robust weights.
+
+Order selection (cfg.select): the band count B in 1..cfg.max_bands and the regularisation in
+cfg.lambdas are chosen per frame on the converged weights and albedos by GCV, K-fold held-out
+residual (spatial folds when points are given), AIC or BIC. The systems for fewer bands are leading
+blocks of G, so every candidate costs one small eigen-decomposition.
+
+K x K normal equations (not the SVD of the solver module): the design changes every iteration and
+the temporal filter needs G anyway; conditioning is checked (diagnostics) and directions with no
+information keep the prior exactly (eigenvalue cut-off), as in solver.regularized_lstsq.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..types import Lighting, SolveDiagnostics
+from . import albedo as alb
+from . import sh
+from .solver import SolverConfig, normal_weights, select_samples
+
+TUNING = {"huber": 1.345, "tukey": 4.685}  # 95% efficiency at Gaussian noise
+MERGE_LOG_TOLERANCE = 0.1   # regions whose albedos differ by < ~10% in every channel are one region
+SECOND_PASS = 1 / 3         # share of the iterations after which regions are found again on albedo estimates
+FOLDS = 5                   # K-fold count of select = "holdout"
+FOLD_CELL = 0.1             # metres: spatial fold cells, so held-out samples are not neighbours of fitted ones
+AXES = {"+x": (1, 0, 0), "-x": (-1, 0, 0), "+y": (0, 1, 0), "-y": (0, -1, 0), "+z": (0, 0, 1), "-z": (0, 0, -1)}
+OBSERVED = 0.5              # a normal's irradiance counts as observed when the data resolve this share of it
+COVERAGE_NORMALS = sh.fibonacci_sphere(256)
+MIN_DOF = 2.0               # fewer resolved combinations (one plane resolves ~1): band-0 fallback
+
+
+def loss_weights(u: np.ndarray, loss: str, c: float) -> np.ndarray:
+    """IRLS weights psi(u)/u of scaled residuals u: 1 (none), Huber min(1, c/|u|), Tukey (1-(u/c)^2)^2."""
+    a = np.abs(np.nan_to_num(u, nan=np.inf))
+    if loss == "huber":
+        return np.where(a <= c, 1.0, c / np.maximum(a, 1e-300))
+    if loss == "tukey":
+        return np.where(a < c, (1.0 - (a / c) ** 2) ** 2, 0.0)
+    return np.ones_like(a)
+
+
+def robust_scale(r: np.ndarray, w: np.ndarray) -> float:
+    """1.4826 * median |r| over samples with weight > 0 (the RMS when the median is 0, tiny if all are 0)."""
+    a = np.abs(r[w > 0])
+    if a.size == 0:
+        return 1.0
+    s = 1.4826 * float(np.median(a))
+    return s if s > 0 else float(np.sqrt(np.mean(a * a))) or 1e-300
+
+
+@dataclass
+class NormalEquations:
+    """A frame's weighted least-squares system per channel c at `bands`:
+    SSE_c(f) = f^T G_c f - 2 g_c^T f + c0_c, with `lam` (3,) the absolute Tikhonov strength used and
+    `sigma2` the residual variance of the fit, so that (G + lam I) / sigma2 is the estimate's precision."""
+
+    G: np.ndarray      # (3, K, K)
+    g: np.ndarray      # (3, K)
+    c0: np.ndarray     # (3,)
+    lam: np.ndarray    # (3,)
+    sigma2: float
+    n: int
+
+    @property
+    def bands(self) -> int:
+        return sh.bands_of(self.G.shape[1])
+
+    def sse(self, F: np.ndarray) -> float:
+        """Weighted sum of squared residuals of lighting F (3, >= K) on this frame's samples."""
+        f = np.asarray(F, dtype=np.float64)[:, :self.G.shape[1]]
+        return float(sum(f[c] @ self.G[c] @ f[c] - 2 * self.g[c] @ f[c] + self.c0[c] for c in range(3)))
+
+    def precision(self) -> np.ndarray:
+        """(3, K, K) inverse covariance of the frame's estimate, data plus its Tikhonov term."""
+        eye = np.eye(self.G.shape[1])
+        return (self.G + self.lam[:, None, None] * eye) / max(self.sigma2, 1e-300)
+
+
+@dataclass
+class Solution:
+    """A frame's lighting, its diagnostics, the system for the temporal filter (None without samples)
+    and the per-region albedos (largest region first)."""
+
+    lighting: Lighting
+    diagnostics: SolveDiagnostics
+    system: NormalEquations | None
+    albedo: np.ndarray
+
+
+def _tikhonov(G: np.ndarray, g: np.ndarray, lam_rel: float, prior: np.ndarray) -> tuple[np.ndarray, float]:
+    """argmin f^T G f - 2 g^T f + lam |f - prior|^2, lam = lam_rel * trace(G) / K; zero-information
+    directions keep the prior. Returns (f, lam)."""
+    k = G.shape[0]
+    lam = lam_rel * float(np.trace(G)) / k
+    e, V = np.linalg.eigh(G)
+    e = np.maximum(e, 0.0)
+    tiny = max(float(e.max()), 0.0) * k * 1e-13
+    y = V.T @ (g - G @ prior)
+    denom = e + lam
+    step = np.divide(y, denom, out=np.zeros_like(y), where=(e > tiny) & (denom > 0))
+    return prior + V @ step, lam
+
+
+def _grams(A: np.ndarray, I: np.ndarray, w: np.ndarray, labels: np.ndarray, m: int):
+    """Per-region sums G_m = sum w R R^T (m, K, K), h_m = sum w I R (m, 3, K) and c0 = sum w I^2 (3,)."""
+    k = A.shape[1]
+    G = np.zeros((m, k, k))
+    h = np.zeros((m, 3, k))
+    for r in range(m):
+        sel = labels == r
+        Aw = A[sel] * w[sel, None]
+        G[r] = Aw.T @ A[sel]
+        h[r] = (Aw.T @ I[sel]).T
+    c0 = (w[:, None] * I * I)[labels >= 0].sum(axis=0)
+    return G, h, c0
+
+
+def _channel_systems(Gm, hm, c0, rho):
+    """Per-channel G_c = sum_m rho_mc^2 G_m, g_c = sum_m rho_mc h_mc: (3, K, K), (3, K), c0."""
+    G = np.einsum("mc,mij->cij", rho * rho, Gm)
+    g = np.einsum("mc,mci->ci", rho, hm)
+    return G, g, c0
+
+
+def _solve_channels(G, g, lam_rel, prior):
+    """Per-channel Tikhonov solutions (3, K) and absolute lambdas (3,)."""
+    out = [_tikhonov(G[c], g[c], lam_rel, prior[c]) for c in range(3)]
+    return np.array([f for f, _ in out]), np.array([lam for _, lam in out])
+
+
+def _prior_scale(F: np.ndarray, prior: np.ndarray, G: np.ndarray) -> np.ndarray | None:
+    """Per-channel s minimising |s F_c - prior_c| in the data metric G_c: keeps the albedo scale (and so
+    the colour balance) of the previous frames; None when the prior has no observed component."""
+    s = np.ones(3)
+    for c in range(3):
+        ff, fp = F[c] @ G[c] @ F[c], F[c] @ G[c] @ prior[c]
+        if not (ff > 0 and fp > 0):
+            return None
+        s[c] = fp / ff
+    return s
+
+
+def _albedo_step(A, I, w, labels, m, F, reference, prior=None, G=None):
+    """Closed-form region albedos given F, scale-fixed by the prior (when it has an observed component)
+    or else by the `reference` rule; returns (rho (m, 3), per-channel scale to move into F)."""
+    S = A @ F.T
+    num = np.zeros((m, 3))
+    den = np.zeros((m, 3))
+    sel = labels >= 0
+    np.add.at(num, labels[sel], (w[sel, None] * I[sel] * S[sel]))
+    np.add.at(den, labels[sel], (w[sel, None] * S[sel] * S[sel]))
+    rho = np.where((den > 0) & (num > 0), num / np.maximum(den, 1e-300), np.nan)
+    fill = np.nanmedian(rho, axis=0) if np.isfinite(rho).any() else np.ones(3)
+    rho = np.where(np.isfinite(rho), rho, np.where(np.isfinite(fill), fill, 1.0))
+    scale = _prior_scale(F, prior, G) if prior is not None and prior.any() else None
+    if scale is None:
+        scale = alb.reference_scale(rho, np.bincount(labels[sel], weights=w[sel], minlength=m), reference)
+    return rho / scale, scale
+
+
+def _folds(n: int, points: np.ndarray | None, seed: int) -> np.ndarray:
+    """Fold index per sample: FOLDS spatial folds of FOLD_CELL cells when points are given, else random."""
+    if points is not None and np.isfinite(points).all():
+        cell = np.floor(points / FOLD_CELL).astype(np.int64)
+        key = (cell[:, 0] * 73856093) ^ (cell[:, 1] * 19349663) ^ (cell[:, 2] * 83492791)
+        return np.abs(key + seed) % FOLDS
+    return np.random.default_rng(seed).integers(0, FOLDS, n)
+
+
+def _criterion(select: str, sse: float, dof: float, n: int) -> float:
+    """GCV, AIC or BIC score (lower is better) of a fit with residual `sse` and `dof` degrees of freedom."""
+    if select == "gcv":
+        return n * sse / max(n - dof, 1.0) ** 2
+    penalty = 2.0 if select == "aic" else math.log(max(n, 2))
+    return n * math.log(max(sse / n, 1e-300)) + penalty * dof
+
+
+def select_order(A, I, w, labels, rho, cfg: SolverConfig, prior: np.ndarray, points=None) -> tuple[int, float]:
+    """(bands, relative lambda) minimising cfg.select's criterion over 1..cfg.max_bands x cfg.lambdas."""
+    m = rho.shape[0]
+    Gm, hm, c0 = _grams(A, I, w, labels, m)
+    G, g, _ = _channel_systems(Gm, hm, c0, rho)
+    n = int((w > 0).sum())
+    if cfg.select == "holdout":
+        fold = _folds(len(I), points, cfg.seed)
+        parts = [_channel_systems(*_grams(A, I, w * (fold == k), labels, m), rho) for k in range(FOLDS)]
+    best, best_score = (1, cfg.lambdas[0]), math.inf
+    for b in range(1, cfg.max_bands + 1):
+        k = b * b
+        if 3 * k >= max(n, 1):
+            break
+        for lam_rel in cfg.lambdas:
+            if cfg.select == "holdout":
+                score = 0.0
+                for Gf, gf, cf in parts:
+                    Gt, gt = G[:, :k, :k] - Gf[:, :k, :k], g[:, :k] - gf[:, :k]
+                    f, _ = _solve_channels(Gt, gt, lam_rel, prior[:, :k])
+                    score += sum(f[c] @ Gf[c, :k, :k] @ f[c] - 2 * gf[c, :k] @ f[c] + cf[c] for c in range(3))
+            else:
+                f, lams = _solve_channels(G[:, :k, :k], g[:, :k], lam_rel, prior[:, :k])
+                sse = sum(f[c] @ G[c, :k, :k] @ f[c] - 2 * g[c, :k] @ f[c] + c0[c] for c in range(3))
+                dof = 0.0
+                for c in range(3):
+                    e = np.maximum(np.linalg.eigvalsh(G[c, :k, :k]), 0.0)
+                    dof += float(np.sum(e / np.maximum(e + lams[c], 1e-300)))
+                score = _criterion(cfg.select, max(sse, 0.0), dof, 3 * n)
+            if score < best_score:
+                best, best_score = (b, lam_rel), score
+    return best
+
+
+def coverage(G: np.ndarray, lam: float) -> tuple[list[str], float]:
+    """Axis directions whose irradiance the system G (K, K) with Tikhonov lam leaves undetermined, and
+    the share of the sphere's normals that it determines: irradiance at normal n is the functional
+    e(n) = A_l Y_lm(n); it counts as observed when the resolution matrix V e/(e + lam) V^T keeps
+    >= OBSERVED of |e(n)|^2."""
+    b = sh.bands_of(G.shape[0])
+    ev, V = np.linalg.eigh(G)
+    ev = np.maximum(ev, 0.0)
+    tiny = max(float(ev.max()), 0.0) * G.shape[0] * 1e-13
+    filt = np.where(ev > tiny, ev / np.maximum(ev + lam, 1e-300), 0.0)
+    lobe = sh.cosine_lobe(b)
+
+    def observed(normals):
+        e = sh.sh_basis(normals, b) * lobe
+        proj = e @ V
+        return (proj * proj * filt).sum(axis=1) / np.maximum((e * e).sum(axis=1), 1e-300)
+
+    axes = observed(np.array(list(AXES.values()), dtype=np.float64))
+    missing = [name for name, o in zip(AXES, axes) if o < OBSERVED]
+    return missing, float(np.mean(observed(COVERAGE_NORMALS) >= OBSERVED))
+
+
+def solve(radiance, transfer, normals, visible, cfg: SolverConfig, prior=None, mask=None,
+          points=None, reference=None) -> Solution:
+    """Robust lighting of one frame (module docstring). Inputs as solver.solve_lighting, plus optional
+    world `points` (N, 3) for spatial hold-out folds and `reference` (3, B'*B'), the previous lighting:
+    its colour balance fixes the albedo scale (instead of cfg.albedo_reference) and it is returned
+    when the frame has no usable samples. (A `prior` is also the Tikhonov target; regularising every
+    frame toward the previous one lets the weakly observed directions drift to the biased
+    least-squares values, so the pipeline passes the previous lighting as `reference` and fuses
+    frames in photoreg.lighting.temporal instead.) Shapes that do not match raise ValueError; data
+    problems give a finite, weak result with notes."""
+    b_fit = cfg.fit_bands
+    k_fit = b_fit * b_fit
+    radiance, transfer, normals, idx, prior, notes = select_samples(radiance, transfer, normals, visible, cfg,
+                                                                    b_fit, prior, mask)
+    prior_fit = prior if prior is not None else np.zeros((3, k_fit))
+    if reference is not None:
+        reference = sh.truncate(np.asarray(reference, dtype=np.float64), b_fit)
+        if reference.shape[0] != 3 or not np.isfinite(reference).all():
+            notes.append("reference ignored (not a finite 3-channel SH)")
+            reference = None
+    ref_F = reference if reference is not None else prior
+    n = idx.size
+    if n == 0:
+        b_out = cfg.bands if cfg.select == "fixed" else 1
+        back = ref_F if ref_F is not None else prior_fit
+        notes.append("no usable samples: returning the " + ("previous lighting" if ref_F is not None
+                                                             else "zero lighting"))
+        return Solution(Lighting(sh.truncate(back, b_out)),
+                        SolveDiagnostics(n_samples=0, weak=True, notes=notes, bands=b_out), None, np.ones((1, 3)))
+    A, I = np.ascontiguousarray(transfer[idx]), radiance[idx]
+    pts = None if points is None else np.asarray(points, dtype=np.float64).reshape(-1, 3)[idx]
+    w0 = normal_weights(normals[idx], cfg)
+    held = np.zeros(n, dtype=bool)
+    if cfg.holdout_fraction > 0 and n >= 20:
+        held = _folds(n, pts, cfg.seed + 1) < round(cfg.holdout_fraction * FOLDS)
+        w0 = np.where(held, 0.0, w0)
+    min_count = max(int(cfg.min_region_fraction * n), 3)
+
+    labels = np.zeros(n, dtype=np.int64)
+    if cfg.albedo == "regions":
+        found = alb.cluster(alb.colour_features(I, with_intensity=False), cfg.chroma_bandwidth, min_count)
+        if (found >= 0).any():
+            labels = found
+    m = int(labels.max()) + 1
+    rho = np.ones((m, 3))
+    rw = np.ones(n)
+    F = prior_fit.copy()
+    iterations = cfg.iterations if (cfg.loss != "none" or cfg.albedo == "regions") else 1
+    c = cfg.loss_scale or TUNING.get(cfg.loss, 1.0)
+    for it in range(iterations):
+        w = w0 * rw * (labels >= 0)
+        G, g, c0 = _channel_systems(*_grams(A, I, w, labels, m), rho)
+        F, _ = _solve_channels(G, g, cfg.regularization, prior_fit)
+        if cfg.albedo == "regions":
+            if it == int(iterations * SECOND_PASS) and iterations > 2:
+                S = np.maximum((A @ F.T) @ sh.LUMINANCE, 1e-12)
+                ratio = np.maximum(I @ sh.LUMINANCE, 1e-12) / S
+                labels = alb.split_by_intensity(labels, np.log(ratio), cfg.intensity_bandwidth, min_count)
+                m = int(labels.max()) + 1
+            rho, scale = _albedo_step(A, I, w0 * rw, labels, m, F, cfg.albedo_reference, ref_F, G)
+            F = F * scale[:, None]
+            if m > 1:
+                labels, m = alb.merge_similar(labels, rho, MERGE_LOG_TOLERANCE)
+                rho, scale = _albedo_step(A, I, w0 * rw, labels, m, F, cfg.albedo_reference, ref_F, G)
+                F = F * scale[:, None]
+        if cfg.loss != "none":
+            pred = rho[np.maximum(labels, 0)] * (A @ F.T)
+            r = (I - pred) @ sh.LUMINANCE
+            active = w0 * (labels >= 0)
+            rw = loss_weights(r / robust_scale(r, active), cfg.loss, c)
+
+    w = w0 * rw * (labels >= 0)
+    if cfg.select != "fixed":
+        bands, lam_rel = select_order(A, I, w, labels, rho, cfg, prior_fit, pts)
+    else:
+        bands, lam_rel = cfg.bands, cfg.regularization
+    k = bands * bands
+    G, g, c0 = _channel_systems(*_grams(np.ascontiguousarray(A[:, :k]), I, w, labels, m), rho)
+    prior_b = prior_fit[:, :k]
+    F, lams = _solve_channels(G, g, lam_rel, prior_b)
+
+    # Rank, conditioning and the fallback: with no prior, data that resolve fewer than MIN_DOF
+    # combinations of coefficients (a single plane) fit band 0 only instead of inventing a direction.
+    G_lum = np.einsum("c,cij->ij", sh.LUMINANCE, G)
+    ev = np.clip(np.linalg.eigvalsh(G_lum)[::-1], 0.0, None)
+    lam_lum = float(sh.LUMINANCE @ lams)
+    dof = float(np.sum(ev / np.maximum(ev + lam_lum, 1e-300)))
+    s = np.sqrt(ev)
+    rank = int((s > cfg.rank_rtol * s[0]).sum()) if s[0] > 0 else 0
+    cond = float(s[0] / s[-1]) if s[-1] > 0 else math.inf
+    n_fit = int((w > 0).sum())
+    too_few = n_fit < cfg.min_samples_factor * k
+    if too_few:
+        notes.append(f"only {n_fit} usable samples for {k} unknowns")
+    if rank < k:
+        notes.append(f"rank deficient: effective rank {rank} of {k}")
+    elif cond > cfg.max_condition:
+        notes.append(f"ill-conditioned: condition number {cond:.3g}")
+    fallback = prior is None and k > 1 and (n_fit < k or dof < MIN_DOF)
+    if fallback:
+        notes.append("band-0-only fallback")
+        F0, _ = _solve_channels(G[:, :1, :1], g[:, :1], lam_rel, prior_b[:, :1])
+        F = np.zeros((3, k))
+        F[:, :1] = F0
+    if cfg.mode == "white":
+        lum = sh.LUMINANCE @ F
+        mean_rgb = (w[:, None] * I).sum(axis=0) / max(w.sum(), 1e-300)
+        F = (mean_rgb / max(float(sh.LUMINANCE @ mean_rgb), 1e-12))[:, None] * lum[None, :]
+    if not np.isfinite(F).all():
+        notes.append("solution overflowed: returning the " + ("prior" if prior is not None else "zero lighting"))
+        F = prior_b.copy()
+
+    pred = rho[np.maximum(labels, 0)] * (A[:, :k] @ F.T)
+    scale = float(np.abs(I).max()) or 1.0
+    with np.errstate(over="ignore", invalid="ignore"):
+        resid = (pred - I) / scale
+        wn = w / max(w.sum(), 1e-300)
+        mean_obs = float((wn[:, None] * np.abs(I / scale)).sum() / 3)
+        rms = float(np.sqrt((wn[:, None] * resid * resid).sum() / 3)) / mean_obs if mean_obs > 0 else 0.0
+        sigma2 = float(max(sum(F[c] @ G[c] @ F[c] - 2 * g[c] @ F[c] + c0[c] for c in range(3)), 0.0)
+                       / max(3 * n_fit - 3 * k, 1))
+    heldout = None
+    use_held = held & (labels >= 0)
+    if use_held.any():
+        r = np.abs((I[use_held] - pred[use_held]) @ sh.LUMINANCE)
+        heldout = float(np.median(r / np.maximum(np.abs(I[use_held] @ sh.LUMINANCE), 1e-12)))
+    missing, observed = coverage(G_lum, lam_lum)
+    if missing:
+        notes.append("unobserved directions: " + ", ".join(missing))
+    unassigned = int((labels < 0).sum())
+    if unassigned:
+        notes.append(f"{unassigned} samples in no albedo region")
+    inliers = float((w0 * rw).sum() / max(w0.sum(), 1e-300))
+    diag = SolveDiagnostics(
+        n_samples=n_fit, condition_number=cond, effective_rank=rank,
+        residual_rms=float(np.nan_to_num(rms, nan=0.0, posinf=np.finfo(np.float64).max)),
+        weak=bool(too_few or rank < k or cond > cfg.max_condition or fallback), notes=notes,
+        bands=bands, regularization=float(lam_rel), albedo=rho.tolist(), inlier_fraction=inliers,
+        unobserved=missing, observed_fraction=observed, heldout_residual=heldout)
+    system = NormalEquations(G, g, c0, lams, sigma2 if np.isfinite(sigma2) else 1.0, n_fit)
+    return Solution(Lighting(F), diag, system, rho)

@@ -1,0 +1,94 @@
+"""Differential-rendering layers and the compositor (DESIGN.md 'Differential rendering').
+
+Renderers fill `Layers`; `composite` alone blends them with the camera frame, in linear RGB:
+  real pixels:    out = cam + rho_hat (F.R_TRV - F.R_TR) = cam * ratio,
+                  ratio = 1 + (F.R_TRV - F.R_TR) / max(F.R_TR, eps)   (rho_hat = cam / max(F.R_TR, eps))
+  virtual pixels: albedo * F.R_TRV at the virtual point, blended by the anti-aliased coverage alpha.
+The ratio is clipped to [0, 1]: a virtual object only takes light away (no interreflection is modelled).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Callable
+
+import cv2
+import numpy as np
+
+from photoreg.kernels.grid import DenseGrid
+from photoreg.kernels.raycast import SurfaceMaps
+from photoreg.render.gbuffer import GBuffer
+
+EPS_REL = 1e-2  # eps = this share of the mean F.R_TR over the shaded real points (per channel)
+
+
+@dataclass
+class RenderInput:
+    """What a renderer may use for one frame."""
+
+    camera: np.ndarray              # (H, W, 3) linear camera frame
+    F: np.ndarray                   # (3, B*B) SH lighting in the solver's units
+    gain: float                     # exposure gain: camera = gain * rho * F.R
+    grid: DenseGrid                 # real geometry (fused TSDF)
+    virtual: DenseGrid              # virtual objects' SDF
+    maps: SurfaceMaps               # real surface at the lighting stride
+    gbuffer: GBuffer                # virtual surface at full resolution (depth-tested)
+    bounds: np.ndarray              # (2, 3) world box of the virtual objects
+    directions: Callable[[int], tuple[np.ndarray, np.ndarray]]  # bands -> (dirs, Y) ray set
+    offset: float                   # ray start offset along the normal, metres
+    ray_length: float               # metres
+
+
+@dataclass
+class Layers:
+    """A renderer's output: virtual colour (not premultiplied), its alpha, and the ratio on real surfaces."""
+
+    colour: np.ndarray              # (H, W, 3) linear
+    alpha: np.ndarray               # (H, W) in [0, 1]
+    ratio: np.ndarray               # (H, W, 3): real pixel gets cam * ratio (1 = unchanged)
+    notes: list[str] = field(default_factory=list)
+
+
+def shade(F: np.ndarray, transfer: np.ndarray) -> np.ndarray:
+    """Lambertian shading without albedo, F.R: transfer (N, K) with K <= F's count -> (N, 3)."""
+    K = F.shape[1]
+    if transfer.shape[1] < K:
+        raise ValueError(f"shade: transfer has {transfer.shape[1]} coefficients, lighting {K}")
+    return transfer[:, :K] @ F.T
+
+
+def shadow_ratio(s_tr: np.ndarray, s_trv: np.ndarray) -> np.ndarray:
+    """1 + (F.R_TRV - F.R_TR) / max(F.R_TR, eps) in [0, 1], eps guarding where F.R_TR is tiny."""
+    if len(s_tr) == 0:
+        return np.ones_like(s_tr)
+    eps = EPS_REL * np.maximum(np.abs(s_tr).mean(axis=0), 1e-12)
+    return np.clip(1.0 + (s_trv - s_tr) / np.maximum(s_tr, eps), 0.0, 1.0).astype(np.float32)
+
+
+def near_objects(maps: SurfaceMaps, bounds: np.ndarray, reach: float) -> np.ndarray:
+    """Stride pixels whose real surface lies within `reach` of the objects' box: the only ones a
+    virtual object can shadow (rays end at ray_length)."""
+    gap = np.maximum(np.maximum(bounds[0] - maps.vertex, maps.vertex - bounds[1]), 0.0)
+    return maps.valid & (np.linalg.norm(gap, axis=-1) <= reach)
+
+
+def upsample_ratio(ratio_s: np.ndarray, near: np.ndarray, stride: int, shape: tuple[int, int]) -> np.ndarray:
+    """Bilinear full-resolution ratio from samples at pixels (r*stride, c*stride), computed only inside
+    the box around the `near` samples (1 elsewhere)."""
+    H, W = shape
+    out = np.ones((H, W, ratio_s.shape[-1]), np.float32)
+    rows, cols = np.nonzero(near)
+    if len(rows) == 0:
+        return out
+    y0, y1 = max((rows.min() - 1) * stride, 0), min((rows.max() + 1) * stride + 1, H)
+    x0, x1 = max((cols.min() - 1) * stride, 0), min((cols.max() + 1) * stride + 1, W)
+    ys, xs = np.mgrid[y0:y1, x0:x1].astype(np.float32) / stride
+    out[y0:y1, x0:x1] = cv2.remap(ratio_s.astype(np.float32), xs, ys, cv2.INTER_LINEAR,
+                                  borderMode=cv2.BORDER_REPLICATE).reshape(y1 - y0, x1 - x0, -1)
+    return out
+
+
+def composite(camera: np.ndarray, layers: Layers) -> np.ndarray:
+    """The one blend: (1 - alpha) * cam * ratio + alpha * colour, linear float32, finite."""
+    a = layers.alpha[..., None]
+    out = (1.0 - a) * camera * layers.ratio + a * layers.colour
+    return np.nan_to_num(out, nan=0.0, posinf=0.0, neginf=0.0).astype(np.float32)

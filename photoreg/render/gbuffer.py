@@ -1,0 +1,127 @@
+"""Virtual G-buffer (albedo, depth, world position and normal, coverage) rasterised with pyrender.
+
+Offscreen through OSMesa (CPU) or EGL (GPU): PYOPENGL_PLATFORM is set to 'egl' when unset and an NVIDIA
+device is present, else 'osmesa'. The view renders at `supersample` times the camera's resolution with
+face indices as flat colours (pyrender resolves its 4x MSAA into the colour buffer, so a blended index
+at an edge is caught by checking it against the depth buffer: the face's plane must give the same z).
+Each subsample is depth-tested against the real surface (real objects occlude virtual ones); the
+pixel's coverage is the share of its subsamples that show a virtual face, and its attributes come
+from one of those subsamples (exact geometry: the ray meets the face's plane).
+"""
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from photoreg.io.poses import check_pose
+from photoreg.render.scene import VirtualScene
+from photoreg.types import Intrinsics
+
+Z_NEAR, Z_FAR = 0.01, 100.0
+OPENCV_TO_OPENGL = np.diag([1.0, -1.0, -1.0, 1.0])  # camera axes: y down, z forward -> y up, z backward
+
+
+@dataclass
+class GBuffer:
+    """Full-resolution virtual layers; attributes are zero where coverage is 0."""
+
+    coverage: np.ndarray   # (H, W) float32 in [0, 1]: share of the pixel showing a virtual surface
+    depth: np.ndarray      # (H, W) float32 camera z in metres, 0 = none
+    position: np.ndarray   # (H, W, 3) float32 world point
+    normal: np.ndarray     # (H, W, 3) float32 world unit normal, facing the camera
+    albedo: np.ndarray     # (H, W, 3) float32 linear RGB
+
+
+def _import_pyrender():
+    """pyrender with an offscreen platform chosen (FACTS.md: np.infty alias under numpy 2)."""
+    if "PYOPENGL_PLATFORM" not in os.environ:
+        os.environ["PYOPENGL_PLATFORM"] = "egl" if Path("/dev/nvidia0").exists() else "osmesa"
+    if not hasattr(np, "infty"):
+        np.infty = np.inf
+    import pyrender
+
+    return pyrender
+
+
+class GBufferRenderer:
+    """Rasterises one virtual scene for one camera model; keeps its GL context across frames."""
+
+    def __init__(self, scene: VirtualScene, intr: Intrinsics, supersample: int = 2):
+        if supersample < 1:
+            raise ValueError(f"GBufferRenderer: supersample must be >= 1, got {supersample}")
+        self.pr = _import_pyrender()
+        self.intr, self.s = intr.check("GBufferRenderer"), int(supersample)
+        self.hi = intr.scaled(self.s)
+        verts, faces, owner = scene.triangles()
+        tri = verts[faces]                                            # (F, 3, 3)
+        n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+        length = np.linalg.norm(n, axis=1, keepdims=True)
+        keep = length[:, 0] > 0                                       # degenerate faces cannot be hit
+        self.p0 = tri[keep, 0]
+        self.face_normal = n[keep] / length[keep]
+        self.face_albedo = np.stack([o.albedo for o in scene.objects])[owner[keep]]
+        ids = np.arange(1, keep.sum() + 1)
+        code = np.stack([ids & 255, (ids >> 8) & 255, (ids >> 16) & 255, np.full_like(ids, 255)], -1)
+        colors = np.repeat(code.astype(np.float32) / 255.0, 3, axis=0)
+        prim = self.pr.Primitive(positions=tri[keep].reshape(-1, 3).astype(np.float32), color_0=colors,
+                                 mode=self.pr.constants.GLTF.TRIANGLES)
+        self.scene = self.pr.Scene(bg_color=[0.0, 0.0, 0.0, 0.0], ambient_light=[1.0, 1.0, 1.0])
+        self.scene.add(self.pr.Mesh([prim]))
+        # pyrender's pixel centres sit at +0.5 (OpenGL); OpenCV's at integers
+        cam = self.pr.IntrinsicsCamera(self.hi.fx, self.hi.fy, self.hi.cx + 0.5, self.hi.cy + 0.5, Z_NEAR, Z_FAR)
+        self.cam_node = self.scene.add(cam, pose=np.eye(4))
+        self.gl = self.pr.OffscreenRenderer(self.hi.width, self.hi.height)
+
+    def close(self) -> None:
+        self.gl.delete()
+
+    def render(self, pose_c2w: np.ndarray, real_depth: np.ndarray | None = None, tolerance: float = 0.005) -> GBuffer:
+        """G-buffer of the view from pose (4x4 camera-to-world, OpenCV); virtual surfaces farther than
+        real_depth (H, W metres, 0 = unknown) + tolerance are hidden."""
+        pose = check_pose(pose_c2w, "GBufferRenderer.render")
+        H, W, s = self.intr.height, self.intr.width, self.s
+        self.scene.set_pose(self.cam_node, pose @ OPENCV_TO_OPENGL)
+        color, zbuf = self.gl.render(self.scene, flags=self.pr.RenderFlags.FLAT)
+        code = color[..., :3].astype(np.int64)
+        face = (code[..., 0] | (code[..., 1] << 8) | (code[..., 2] << 16)) - 1
+        hit = zbuf > 0
+        # exact z of each subsample's ray on its face's plane; mismatches are blended (invalid) indices
+        v, u = np.nonzero(hit & (face >= 0) & (face < len(self.p0)))
+        f = face[v, u]
+        ray_c = np.stack([(u - self.hi.cx) / self.hi.fx, (v - self.hi.cy) / self.hi.fy, np.ones(len(u))], -1)
+        R, t = pose[:3, :3], pose[:3, 3]
+        ray_w = ray_c @ R.T
+        nf = self.face_normal[f]
+        denom = np.einsum("ij,ij->i", nf, ray_w)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            z = np.einsum("ij,ij->i", nf, self.p0[f] - t) / denom
+        ok = np.isfinite(z) & (np.abs(z - zbuf[v, u]) <= 2e-3 + 2e-3 * zbuf[v, u])
+        v, u, f, z, ray_w, nf, denom = v[ok], u[ok], f[ok], z[ok], ray_w[ok], nf[ok], denom[ok]
+        if real_depth is not None:
+            real = np.asarray(real_depth, np.float32)
+            if real.shape != (H, W):
+                raise ValueError(f"GBufferRenderer.render: real_depth is {real.shape}, expected {(H, W)}")
+            rd = np.repeat(np.repeat(real, s, 0), s, 1)
+            hidden = (rd > 0) & np.isfinite(rd) & (zbuf > rd + tolerance)
+            hit &= ~hidden
+            keep = ~hidden[v, u]
+            v, u, f, z, ray_w, nf, denom = v[keep], u[keep], f[keep], z[keep], ray_w[keep], nf[keep], denom[keep]
+        coverage = hit.reshape(H, s, W, s).mean(axis=(1, 3)).astype(np.float32)
+        # one representative subsample per pixel: the last valid one written wins
+        pix = (v // s) * W + (u // s)
+        out_depth = np.zeros(H * W, np.float32)
+        out_pos = np.zeros((H * W, 3), np.float32)
+        out_n = np.zeros((H * W, 3), np.float32)
+        out_alb = np.zeros((H * W, 3), np.float32)
+        out_depth[pix] = z
+        out_pos[pix] = t + ray_w * z[:, None]
+        out_n[pix] = nf * -np.sign(denom)[:, None]   # face the camera
+        out_alb[pix] = self.face_albedo[f]
+        has = np.zeros(H * W, bool)
+        has[pix] = True
+        coverage = np.where(has.reshape(H, W), coverage, 0.0).astype(np.float32)
+        return GBuffer(coverage, out_depth.reshape(H, W), out_pos.reshape(H, W, 3), out_n.reshape(H, W, 3),
+                       out_alb.reshape(H, W, 3))
