@@ -407,3 +407,16 @@ def test_unknown_layout_and_format(tmp_path):
         open_recording(tmp_path, fmt="kinect")
     with pytest.raises(IndexError):
         open_recording(tmp_path).frame(3)
+
+
+def test_atomic_writes_use_the_umask_not_0600(tmp_path):
+    import os
+
+    from photoreg.io.atomic import write_text
+
+    old = os.umask(0o022)
+    try:
+        write_text(tmp_path / "a.txt", "x")
+    finally:
+        os.umask(old)
+    assert (tmp_path / "a.txt").stat().st_mode & 0o777 == 0o644
