@@ -34,7 +34,7 @@ import numpy as np
 from ..types import Lighting, SolveDiagnostics
 from . import albedo as alb
 from . import sh
-from .solver import SolverConfig, normal_weights, select_samples
+from .solver import SolverConfig, conditioning, normal_weights, select_samples
 
 TUNING = {"huber": 1.345, "tukey": 4.685}  # 95% efficiency at Gaussian noise
 MERGE_LOG_TOLERANCE = 0.1   # regions whose albedos differ by < ~10% in every channel are one region
@@ -336,17 +336,8 @@ def solve(radiance, transfer, normals, visible, cfg: SolverConfig, prior=None, m
     ev = np.clip(np.linalg.eigvalsh(G_lum)[::-1], 0.0, None)
     lam_lum = float(sh.LUMINANCE @ lams)
     dof = float(np.sum(ev / np.maximum(ev + lam_lum, 1e-300)))
-    s = np.sqrt(ev)
-    rank = int((s > cfg.rank_rtol * s[0]).sum()) if s[0] > 0 else 0
-    cond = float(s[0] / s[-1]) if s[-1] > 0 else math.inf
     n_fit = int((w > 0).sum())
-    too_few = n_fit < cfg.min_samples_factor * k
-    if too_few:
-        notes.append(f"only {n_fit} usable samples for {k} unknowns")
-    if rank < k:
-        notes.append(f"rank deficient: effective rank {rank} of {k}")
-    elif cond > cfg.max_condition:
-        notes.append(f"ill-conditioned: condition number {cond:.3g}")
+    rank, cond, too_few = conditioning(np.sqrt(ev), n_fit, k, cfg, notes)
     fallback = prior is None and k > 1 and (n_fit < k or dof < MIN_DOF)
     if fallback:
         notes.append("band-0-only fallback")

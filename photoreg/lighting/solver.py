@@ -257,6 +257,22 @@ def select_samples(radiance, transfer, normals, visible, cfg: SolverConfig, band
     return radiance, transfer, normals, idx, prior, notes
 
 
+def conditioning(s: np.ndarray, n: int, k: int, cfg: SolverConfig, notes: list[str]) -> tuple[int, float, bool]:
+    """Effective rank, condition number and 'too few samples' from the singular values s of a
+    design with n samples and k unknowns; appends the matching diagnostic notes."""
+    s_max = float(s[0]) if s.size else 0.0
+    rank = int((s > cfg.rank_rtol * s_max).sum()) if s_max > 0 else 0
+    cond = float(s_max / s[-1]) if s.size == k and s[-1] > 0 else float("inf")
+    too_few = n < cfg.min_samples_factor * k
+    if too_few:
+        notes.append(f"only {n} usable samples for {k} unknowns")
+    if rank < k:
+        notes.append(f"rank deficient: effective rank {rank} of {k}")
+    elif cond > cfg.max_condition:
+        notes.append(f"ill-conditioned: condition number {cond:.3g}")
+    return rank, cond, too_few
+
+
 def solve_lighting(radiance: np.ndarray, transfer: np.ndarray, normals: np.ndarray, visible: np.ndarray,
                    cfg: SolverConfig | None = None, prior: np.ndarray | None = None,
                    mask: np.ndarray | None = None) -> tuple[Lighting, SolveDiagnostics]:
@@ -298,17 +314,7 @@ def solve_lighting(radiance: np.ndarray, transfer: np.ndarray, normals: np.ndarr
     aw = sw * a
     rhs_w = sw * rhs if rhs.ndim == 2 else sw[:, 0] * rhs
     x, s = regularized_lstsq(aw, rhs_w, cfg.regularization, prior_x, relative=True)
-    s_max = float(s[0]) if s.size else 0.0
-    rank = int((s > cfg.rank_rtol * s_max).sum()) if s_max > 0 else 0
-    cond = float(s_max / s[-1]) if s.size == k and s[-1] > 0 else float("inf")
-
-    too_few = n < cfg.min_samples_factor * k
-    if too_few:
-        notes.append(f"only {n} usable samples for {k} unknowns")
-    if rank < k:
-        notes.append(f"rank deficient: effective rank {rank} of {k}")
-    elif cond > cfg.max_condition:
-        notes.append(f"ill-conditioned: condition number {cond:.3g}")
+    rank, cond, too_few = conditioning(s, n, k, cfg, notes)
 
     solve_cols = k
     if prior is None and k > 1 and (n < k or rank < k):
