@@ -48,7 +48,6 @@ class Pipeline:
             from .recon.tracking import Tracker
             self.tracker = Tracker(self.volume, intrinsics, rc)
         self.prev_F: np.ndarray | None = None
-        self.n_frames = 0
         self.render = None  # virtual objects (issue 5): RenderStage, built before any frame
         if session.objects:
             from .render.stage import RenderStage
@@ -126,7 +125,7 @@ class Pipeline:
                 with self._timed(t, "render"):
                     composite = self.render(prep.linear, prep.depth, grid, maps, pose, F.sh, gain)
         if F is None:  # no pose: keep the previous estimate (or darkness), flagged weak
-            prev = self.prev_F if self.prev_F is not None else np.zeros((3, lc.bands * lc.bands))
+            prev = self.prev_F if self.prev_F is not None else np.zeros((3, self.solver_cfg.fit_bands ** 2))
             F, diag = Lighting(prev.copy()), SolveDiagnostics(notes=["no pose: previous estimate repeated"])
         diag.notes = notes + list(diag.notes)
         if prep.saturated_fraction > 0.2:
@@ -136,5 +135,4 @@ class Pipeline:
         if not diag.weak:
             self.prev_F = F.sh
         t["total"] = (time.perf_counter() - t_all) * 1000.0
-        self.n_frames += 1
         return FrameResult(frame.index, frame.timestamp, F, diag, sh.dominant_direction(F.sh), t, composite=composite)
