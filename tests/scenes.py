@@ -10,22 +10,12 @@ import numpy as np
 from photoreg.io.images import linear_to_srgb
 from photoreg.io.native import NativeWriter
 from photoreg.lighting import sh
+from photoreg.synth.cameras import look_at  # noqa: F401  (re-exported for tests that build poses)
 from photoreg.types import Intrinsics
 
 BOX = (np.array([-0.15, -0.1, 0.0]), np.array([0.15, 0.2, 0.25]))   # axis-aligned box on the floor, metres
 LIGHT = np.array([0.5, -0.3, 0.8]) / np.linalg.norm([0.5, -0.3, 0.8])
 AMBIENT, SUN = 0.25, 0.9   # shading = AMBIENT + SUN * max(n.LIGHT, 0)
-
-
-def look_at(eye: np.ndarray, target: np.ndarray) -> np.ndarray:
-    """Camera-to-world pose (OpenCV axes) at `eye` looking at `target`, world z up."""
-    f = (target - eye) / np.linalg.norm(target - eye)
-    r = np.cross(f, [0.0, 0.0, 1.0])
-    r /= np.linalg.norm(r)
-    T = np.eye(4)
-    T[:3, :3] = np.stack([r, np.cross(f, r), f], axis=1)
-    T[:3, 3] = eye
-    return T
 
 
 def render(k: Intrinsics, pose: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
