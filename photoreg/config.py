@@ -52,7 +52,8 @@ class LightingConfig:
     # (loss none, albedo single, select fixed, checks 180/inf, temporal and exposure false) give the paper's solver.
     loss: str = "huber"           # none | huber | tukey: IRLS loss on luminance residuals
     albedo: str = "regions"       # single | regions: one albedo, or per-region albedo solved jointly
-    albedo_reference: str = "max"  # max | largest | mean: what albedo 1 means (fixes the scale ambiguity)
+    albedo_reference: str = "max"  # max | largest | mean: the region whose albedo fixes the scale ambiguity
+    reference_albedo: float = 0.8  # ... taken to have this albedo: F in absolute units (objects' albedos)
     select: str = "fixed"         # fixed | gcv | holdout | aic | bic: per-frame band count and regularisation
     max_bands: int = 5            # largest band count tried when select is not fixed
     max_samples: int = 8000       # random subsample of the usable samples per solve (solve time is linear in it)
@@ -77,6 +78,7 @@ class ObjectConfig:
 @dataclass
 class RenderConfig:
     shadows: str = "voxel"        # voxel | shadowmap | neural_soft | neural_shadowmap | none
+    light_rays: int = 16          # voxel: rays over the dominant light's disc (sharp shadows); 0 = pure SH (paper)
 
 
 @dataclass
@@ -98,6 +100,8 @@ class Session:
     source: str = ""              # the session file, for messages
 
 
+SHADOW_RENDERERS = ("voxel", "shadowmap", "neural_soft", "neural_shadowmap", "none")  # [render] shadows
+
 _CHOICES = {
     ("recording", "format"): {"auto", "native", "tum", "redwood", "7scenes"},
     ("lighting", "weighting"): {"bins", "density", "none"},
@@ -107,7 +111,7 @@ _CHOICES = {
     ("lighting", "albedo"): {"single", "regions"},
     ("lighting", "albedo_reference"): {"max", "largest", "mean"},
     ("lighting", "select"): {"fixed", "gcv", "holdout", "aic", "bic"},
-    ("render", "shadows"): {"voxel", "shadowmap", "neural_soft", "neural_shadowmap", "none"},
+    ("render", "shadows"): set(SHADOW_RENDERERS),
     ("", "device"): {"auto", "cpu", "cuda"},
 }
 
@@ -215,6 +219,7 @@ def validate(s: Session) -> None:
               (L.ray_length > 0, "lighting.ray_length must be > 0"),
               (0 <= L.min_visible < 1, "lighting.min_visible must be in [0, 1)"),
               (L.regularization >= 0, "lighting.regularization must be >= 0"),
+              (0 < L.reference_albedo <= 1, "lighting.reference_albedo must be in (0, 1]"),
               (1 <= L.max_bands <= 8, "lighting.max_bands must be in 1..8"),
               (L.max_samples >= 1, "lighting.max_samples must be >= 1"),
               (0 <= L.bin_min_fraction < 1, "lighting.bin_min_fraction must be in [0, 1)"),
@@ -222,6 +227,7 @@ def validate(s: Session) -> None:
               (L.max_depth_gap_voxels > 0, "lighting.max_depth_gap_voxels must be > 0"),
               (L.process_noise >= 0 and L.change_threshold > 0,
                "lighting.process_noise must be >= 0 and lighting.change_threshold > 0"),
+              (s.render.light_rays >= 0, "render.light_rays must be >= 0"),
               (R.voxel_size > 0, "reconstruction.voxel_size must be > 0"),
               (0 < R.depth_min < R.depth_max, "reconstruction.depth_min must be > 0 and < depth_max")]
     for ok, msg in checks:

@@ -14,7 +14,7 @@ from photoreg.config import ObjectConfig
 from photoreg.kernels.raycast import raycast_surface
 from photoreg.kernels.transfer import make_direction_set, radiance_transfer
 from photoreg.lighting import sh
-from photoreg.render.composite import RenderInput, composite
+from photoreg.render.composite import RenderInput, composite, shade
 from photoreg.render.gbuffer import GBufferRenderer
 from photoreg.render.registry import get_renderer
 from photoreg.render.scene import load_scene, object_transform, sdf_grid, voxel_grid
@@ -58,7 +58,7 @@ def test_bad_objects_are_errors(tmp_path):
     with pytest.raises(ValueError, match="cube.obj"):
         load_scene([_cube(tmp_path, position=[0.0, math.nan, 0.0])])
     with pytest.raises(ValueError, match="no renderer"):
-        get_renderer("shadowmap")
+        get_renderer("raytraced")
 
 
 def test_gbuffer_known_projection_and_real_occlusion(tmp_path):
@@ -81,7 +81,7 @@ def test_gbuffer_known_projection_and_real_occlusion(tmp_path):
 
 
 def test_virtual_visibility_never_exceeds_real(tmp_path):
-    scene = load_scene([_cube(tmp_path, scale=0.2)])
+    scene = load_scene([_cube(tmp_path, scale=0.2, albedo=[0.5, 0.5, 0.5])])
     virt, floor = voxel_grid(scene, 0.02, "cpu"), _floor_grid()
     dirs, Y = make_direction_set(48, 3, seed=0)
     xy = np.stack(np.meshgrid(np.linspace(-0.4, 0.4, 9), np.linspace(-0.4, 0.4, 9)), -1).reshape(-1, 2)
@@ -95,13 +95,14 @@ def test_virtual_visibility_never_exceeds_real(tmp_path):
 
 def _render_floor(tmp_path, shadows: str):
     """A cube on the real floor seen from above, lit from above: (camera, composite, layers, gbuffer)."""
-    scene = load_scene([_cube(tmp_path, scale=0.2)])
+    scene = load_scene([_cube(tmp_path, scale=0.2, albedo=[0.5, 0.5, 0.5])])
     floor, virt = _floor_grid(), voxel_grid(scene, 0.02, "cpu")
     maps = raycast_surface(floor, INTR, LOOK_DOWN, 0.1, 3.0, stride=2)
     gb = GBufferRenderer(scene, INTR, 2).render(LOOK_DOWN, raycast_surface(floor, INTR, LOOK_DOWN, 0.1, 3.0).depth)
     up = sh.sh_basis(np.array([[0, 0, 1.0]]), 3)[0]
     F = np.outer([1.0, 0.9, 0.8], 2.0 * up) + np.outer([0.2, 0.2, 0.2], np.eye(9)[0])  # sky lobe overhead
-    camera = np.full((48, 64, 3), 0.4, np.float32)
+    camera = np.ones((48, 64, 1), np.float32) * (0.5 * shade(F, sh.unoccluded_transfer(np.array([[0, 0, 1.0]]), 3)))
+    camera = camera.astype(np.float32)                                # a floor of albedo 0.5 under F
     inp = RenderInput(camera, F, 1.0, floor, virt, maps, gb, scene.bounds,
                       lambda b: make_direction_set(32, b, seed=0), 0.03, 0.3)
     layers = get_renderer(shadows)(inp)
@@ -113,7 +114,7 @@ def test_shadow_darkens_floor_and_far_pixels_unchanged(tmp_path):
     assert np.all(np.isfinite(out)) and np.all(np.isfinite(layers.ratio))
     real = gb.coverage == 0
     ring = cv2.dilate((gb.coverage > 0).astype(np.uint8), np.ones((7, 7), np.uint8)).astype(bool) & real
-    assert out[ring].mean() < 0.95 * camera[ring].mean()          # the floor beside the cube loses sky light (-9%)
+    assert out[ring].mean() < 0.985 * camera[ring].mean()         # the floor beside the cube loses sky light
     far = np.zeros_like(real)
     far[:, :4] = far[:, -4:] = True                               # > ray_length from the cube
     assert np.array_equal(out[far], camera[far])
@@ -128,17 +129,39 @@ def test_none_renderer_leaves_real_pixels(tmp_path):
     assert np.array_equal(out[real], camera[real]) and np.all(np.isfinite(out))
 
 
-@pytest.mark.xfail(reason="issue 5 open: F's albedo scale (albedo_reference) does not match the session's "
-                          "absolute object albedo, so the object renders too dark, and low-band SH spreads the "
-                          "sun's shadow wider and darker than the path tracer's", strict=False)
-def test_demo_composite_beats_no_shadow_baseline(tmp_path):
-    from photoreg.bench.score import score_composites
+@pytest.fixture(scope="module")
+def demo_run(tmp_path_factory):
+    """The demo session over frames 0, 5, ..., 25 (insert frames 10 and 20 composited)."""
     from photoreg.config import load_session
     from photoreg.runner import run_session
 
+    out = tmp_path_factory.mktemp("demo_run")
     s = load_session(REPO / "data" / "demo" / "session.toml")
-    s.output.dir, s.frames, s.output.pictures_every = str(tmp_path), "0:30:5", 0
+    s.output.dir, s.frames, s.output.pictures_every = str(out), "0:30:5", 0
     run_session(s, quiet=True)
-    assert (tmp_path / "lightmap" / "000010.exr").is_file() and (tmp_path / "composite" / "000020.png").is_file()
-    rows = [r for r in score_composites(tmp_path, REPO / "data" / "demo")["per_frame"] if "si_rmse" in r]
+    return out
+
+
+def test_demo_object_brightness_matches_path_tracer(demo_run):
+    """F in absolute units (lighting.reference_albedo) plus the floor's bounce light the object as the path
+    tracer does: its mean colour within 8% per channel (it was 20% too dark with F relative to albedo 1
+    and no bounce)."""
+    from photoreg.io.images import read_exr
+
+    assert (demo_run / "lightmap" / "000010.exr").is_file() and (demo_run / "composite" / "000020.png").is_file()
+    for f in ("000010", "000020"):
+        gt = read_exr(REPO / "data" / "demo" / "insert" / f"{f}.exr")
+        est = read_exr(demo_run / "composite_linear" / f"{f}.exr")
+        mask = cv2.imread(str(REPO / "data" / "demo" / "insert_mask" / f"{f}.png"), cv2.IMREAD_GRAYSCALE) > 0
+        ratio = est[mask].mean(axis=0) / gt[mask].mean(axis=0)
+        assert np.all(np.abs(ratio - 1.0) < 0.08), (f, ratio)
+
+
+@pytest.mark.xfail(reason="issue 5 open: the baseline pastes the path tracer's own object, and the estimated "
+                          "lighting is smoother than the sun-lit truth (its higher bands are weak), so the "
+                          "object's faces are shaded flatter than the truth", strict=False)
+def test_demo_composite_beats_no_shadow_baseline(demo_run):
+    from photoreg.bench.score import score_composites
+
+    rows = [r for r in score_composites(demo_run, REPO / "data" / "demo")["per_frame"] if "si_rmse" in r]
     assert rows and all(r["si_rmse"] < r["baseline_si_rmse"] for r in rows)

@@ -13,7 +13,9 @@ local maxima holding at least `min_count` samples become region centres, every s
 nearest centre (two k-means refinements) and samples farther than FAR_CELLS from all centres, or in
 regions smaller than `min_count`, get label -1 (left out of the fit).
 
-Scale: rho * F is unchanged by rho / s, F * s per channel, so one rule fixes s (REFERENCES).
+Scale: rho * F is unchanged by rho / s, F * s per channel, so one rule fixes s (REFERENCES): the rule's
+region gets the assumed albedo `value` (lighting.reference_albedo), which puts F in absolute units
+(virtual objects with absolute albedos are then lit at the right brightness).
 """
 from __future__ import annotations
 
@@ -23,9 +25,9 @@ import numpy as np
 
 FAR_CELLS = 3.0          # a sample farther than this (in cells) from every centre belongs to no region
 REFERENCES = {
-    "max": "per channel, the largest albedo over regions holding >= 5% of the samples is 1 (max-RGB)",
-    "largest": "the region holding the most samples has albedo 1",
-    "mean": "the mean albedo over regions (each region counted once) is 1 (grey world)",
+    "max": "per channel, the largest albedo over regions holding >= 5% of the samples is `value` (max-RGB)",
+    "largest": "the region holding the most samples has albedo `value`",
+    "mean": "the mean albedo over regions (each region counted once) is `value` (grey world)",
 }
 
 
@@ -114,12 +116,13 @@ def split_by_intensity(labels: np.ndarray, log_albedo: np.ndarray, bandwidth: fl
     return remap[out]
 
 
-def reference_scale(rho: np.ndarray, counts: np.ndarray, rule: str) -> np.ndarray:
-    """Per-channel scale s (3,) such that rho / s obeys `rule` (REFERENCES); regions with no samples ignored."""
+def reference_scale(rho: np.ndarray, counts: np.ndarray, rule: str, value: float = 1.0) -> np.ndarray:
+    """Per-channel scale s (3,) such that rho / s obeys `rule` (REFERENCES) with albedo `value`; regions
+    with no samples ignored."""
     rho = np.asarray(rho, dtype=np.float64)
     used = np.asarray(counts) > 0
     if not used.any():
-        return np.ones(3)
+        return np.full(3, 1.0 / value)
     if rule == "largest":
         s = rho[int(np.argmax(counts))]
     elif rule == "mean":
@@ -129,7 +132,7 @@ def reference_scale(rho: np.ndarray, counts: np.ndarray, rule: str) -> np.ndarra
         s = rho[big if big.any() else used].max(axis=0)
     else:
         raise ValueError(f"albedo reference must be one of {sorted(REFERENCES)}, got {rule!r}")
-    return np.where(np.isfinite(s) & (s > 0), s, 1.0)
+    return np.where(np.isfinite(s) & (s > 0), s, 1.0) / value
 
 
 def merge_similar(labels: np.ndarray, rho: np.ndarray, tolerance: float) -> tuple[np.ndarray, int]:

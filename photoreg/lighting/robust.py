@@ -158,9 +158,9 @@ def _prior_scale(F: np.ndarray, prior: np.ndarray, G: np.ndarray) -> np.ndarray 
     return s
 
 
-def _albedo_step(A, I, w, labels, m, F, reference, prior=None, G=None):
+def _albedo_step(A, I, w, labels, m, F, cfg: SolverConfig, prior=None, G=None):
     """Closed-form region albedos given F, scale-fixed by the prior (when it has an observed component)
-    or else by the `reference` rule; returns (rho (m, 3), per-channel scale to move into F)."""
+    or else by cfg's albedo_reference rule and reference_albedo; returns (rho (m, 3), per-channel scale to move into F)."""
     S = A @ F.T
     num = np.zeros((m, 3))
     den = np.zeros((m, 3))
@@ -172,7 +172,8 @@ def _albedo_step(A, I, w, labels, m, F, reference, prior=None, G=None):
     rho = np.where(np.isfinite(rho), rho, np.where(np.isfinite(fill), fill, 1.0))
     scale = _prior_scale(F, prior, G) if prior is not None and prior.any() else None
     if scale is None:
-        scale = alb.reference_scale(rho, np.bincount(labels[sel], weights=w[sel], minlength=m), reference)
+        scale = alb.reference_scale(rho, np.bincount(labels[sel], weights=w[sel], minlength=m),
+                                    cfg.albedo_reference, cfg.reference_albedo)
     return rho / scale, scale
 
 
@@ -308,11 +309,11 @@ def solve(radiance, transfer, normals, visible, cfg: SolverConfig, prior=None, m
                 ratio = np.maximum(I @ sh.LUMINANCE, 1e-12) / S
                 labels = alb.split_by_intensity(labels, np.log(ratio), cfg.intensity_bandwidth, min_count)
                 m = int(labels.max()) + 1
-            rho, scale = _albedo_step(A, I, w0 * rw, labels, m, F, cfg.albedo_reference, ref_F, G)
+            rho, scale = _albedo_step(A, I, w0 * rw, labels, m, F, cfg, ref_F, G)
             F = F * scale[:, None]
             if m > 1:
                 labels, m = alb.merge_similar(labels, rho, MERGE_LOG_TOLERANCE)
-                rho, scale = _albedo_step(A, I, w0 * rw, labels, m, F, cfg.albedo_reference, ref_F, G)
+                rho, scale = _albedo_step(A, I, w0 * rw, labels, m, F, cfg, ref_F, G)
                 F = F * scale[:, None]
         if cfg.loss != "none":
             pred = rho[np.maximum(labels, 0)] * (A @ F.T)

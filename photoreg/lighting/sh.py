@@ -10,6 +10,7 @@ import math
 
 import numpy as np
 
+Y00 = 0.5 / math.sqrt(math.pi)  # the band-0 basis value, 0.282095
 LUMINANCE = np.array([0.2126, 0.7152, 0.0722])  # Rec. 709 weights for linear RGB
 
 

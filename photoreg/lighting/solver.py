@@ -69,7 +69,8 @@ class SolverConfig:
     loss_scale: float | None = None    # tuning constant in robust sigmas (None: 1.345 huber, 4.685 tukey)
     iterations: int = 12               # alternations of albedo, lighting and robust weights
     albedo: str = "single"             # "single" | "regions": one albedo, or one per region found in the data
-    albedo_reference: str = "max"      # scale fix: "max" (per-channel max over regions = 1), "largest", "mean"
+    albedo_reference: str = "max"      # scale fix: "max" (per-channel max over regions), "largest", "mean"
+    reference_albedo: float = 1.0      # ... whose albedo is taken to be this (absolute scale of F)
     chroma_bandwidth: float = 0.08     # region clustering cell in log-chromaticity (best of 0.05/0.08/0.12)
     intensity_bandwidth: float = 0.5   # ... and in log albedo (second pass, shading removed)
     min_region_fraction: float = 0.005  # a region needs this share of the samples (small objects count)
@@ -92,6 +93,8 @@ class SolverConfig:
                                      ("select", self.select, SELECTIONS)):
             if value not in choices:
                 raise ValueError(f"{name} must be one of {choices}, got {value!r}")
+        if not 0 < self.reference_albedo <= 1:
+            raise ValueError(f"reference_albedo must be in (0, 1], got {self.reference_albedo}")
         if not (0 <= self.bin_min_fraction < 1 and 0 <= self.holdout_fraction < 0.5 and self.iterations >= 1
                 and self.max_bands >= 1 and self.lambdas and min(self.lambdas) >= 0):
             raise ValueError("need 0 <= bin_min_fraction < 1, 0 <= holdout_fraction < 0.5, iterations >= 1, "
@@ -102,7 +105,8 @@ class SolverConfig:
         """The solve settings of a session's [lighting] table (photoreg.config.LightingConfig)."""
         return cls(bands=lc.bands, weighting=lc.weighting, regularization=lc.regularization,
                    min_visible=lc.min_visible, mode=lc.mode, bin_min_fraction=lc.bin_min_fraction, loss=lc.loss,
-                   albedo=lc.albedo, albedo_reference=lc.albedo_reference, select=lc.select,
+                   albedo=lc.albedo, albedo_reference=lc.albedo_reference,
+                   reference_albedo=lc.reference_albedo, select=lc.select,
                    max_bands=lc.max_bands, max_samples=lc.max_samples)
 
     @property
@@ -298,7 +302,7 @@ def solve_lighting(radiance: np.ndarray, transfer: np.ndarray, normals: np.ndarr
         notes.append("no usable samples: returning the " + ("prior" if prior is not None else "zero lighting"))
         return Lighting(fallback.copy()), SolveDiagnostics(n_samples=0, weak=True, notes=notes)
 
-    a, obs, nrm = transfer[idx], radiance[idx], normals[idx]
+    a, obs, nrm = transfer[idx], radiance[idx] / cfg.reference_albedo, normals[idx]  # every albedo = reference
     w = normal_weights(nrm, cfg)
     sw = np.sqrt(w)[:, None]
 

@@ -4,7 +4,11 @@ Renderers fill `Layers`; `composite` alone blends them with the camera frame, in
   real pixels:    out = cam + rho_hat (F.R_TRV - F.R_TR) = cam * ratio,
                   ratio = 1 + (F.R_TRV - F.R_TR) / max(F.R_TR, eps)   (rho_hat = cam / max(F.R_TR, eps))
   virtual pixels: albedo * F.R_TRV at the virtual point, blended by the anti-aliased coverage alpha.
-The ratio is clipped to [0, 1]: a virtual object only takes light away (no interreflection is modelled).
+One ambient bounce (`bounce`): a blocked direction is not black but shows the occluder's mean radiance,
+so renderers add L_occluder * (blocked cosine-weighted share) to F.R: the real surface near the objects
+lights a virtual cube's sides, and the object (its mean radiance as the camera sees it) lights the floor
+beside it. On the demo this cut the composite si-RMSE from 0.096 to 0.085 (real bounce alone: 0.096).
+The ratio is clipped to [0, 1]: a virtual object takes away more light than it reflects.
 """
 from __future__ import annotations
 
@@ -16,7 +20,9 @@ import numpy as np
 
 from photoreg.kernels.grid import DenseGrid
 from photoreg.kernels.raycast import SurfaceMaps
+from photoreg.lighting import sh
 from photoreg.render.gbuffer import GBuffer
+from photoreg.render.scene import VirtualScene
 
 EPS_REL = 1e-2  # eps = this share of the mean F.R_TR over the shaded real points (per channel)
 
@@ -36,6 +42,8 @@ class RenderInput:
     directions: Callable[[int], tuple[np.ndarray, np.ndarray]]  # bands -> (dirs, Y) ray set
     offset: float                   # ray start offset along the normal, metres
     ray_length: float               # metres
+    light_rays: int = 0             # rays over the dominant light's disc (0: the light stays in F's SH)
+    scene: VirtualScene | None = None  # the placed objects (renderers that work per object need it)
 
 
 @dataclass
@@ -54,6 +62,22 @@ def shade(F: np.ndarray, transfer: np.ndarray) -> np.ndarray:
     if transfer.shape[1] < K:
         raise ValueError(f"shade: transfer has {transfer.shape[1]} coefficients, lighting {K}")
     return transfer[:, :K] @ F.T
+
+
+def blocked_share(transfer: np.ndarray) -> np.ndarray:
+    """(1/pi) * integral (1 - V) max(n.w, 0) dw per point, from the band-0 transfer (R_00 = Y00 * that
+    integral of V), clipped to [0, 1]: (N, B*B) -> (N, 1)."""
+    return np.clip(1.0 - transfer[:, :1] / sh.Y00, 0.0, 1.0)
+
+
+def bounce(F: np.ndarray, gain: float, tr: np.ndarray, trv: np.ndarray, real_radiance: np.ndarray,
+           virtual_radiance: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Camera-unit shading without albedo under real (R_TR) and real+virtual (R_TRV) occlusion, with one
+    ambient bounce: directions blocked by real geometry show `real_radiance` (3,), those blocked only by
+    the virtual objects `virtual_radiance` (3,); returns (S_TR, S_TRV), each (N, 3)."""
+    b_tr, b_trv = blocked_share(tr), blocked_share(trv)
+    s_tr = gain * shade(F, tr) + b_tr * real_radiance
+    return s_tr, gain * shade(F, trv) + b_tr * real_radiance + np.maximum(b_trv - b_tr, 0.0) * virtual_radiance
 
 
 def shadow_ratio(s_tr: np.ndarray, s_trv: np.ndarray) -> np.ndarray:

@@ -18,7 +18,8 @@ SUPERSAMPLE = 2  # G-buffer subsamples per pixel edge (anti-aliased object edges
 
 
 class RenderStage:
-    """Inserts the session's objects into frames; `last` holds the latest frame's Layers."""
+    """Inserts the session's objects into frames; `last` holds the latest frame's Layers and `last_input`
+    its RenderInput (to run other renderers on the same frame: the renderer contract test, benchmarks)."""
 
     def __init__(self, session: Session, intrinsics: Intrinsics, device: str):
         self.session, self.intrinsics = session, intrinsics
@@ -28,6 +29,7 @@ class RenderStage:
         self.gbuffer = GBufferRenderer(self.scene, intrinsics, SUPERSAMPLE)
         self._dirs: dict[int, tuple[np.ndarray, np.ndarray]] = {}
         self.last: Layers | None = None
+        self.last_input: RenderInput | None = None
 
     def directions(self, bands: int) -> tuple[np.ndarray, np.ndarray]:
         """The ray set for `bands`, made once (same rays and seed as the lighting solve)."""
@@ -46,6 +48,7 @@ class RenderStage:
         inp = RenderInput(camera=camera, F=np.asarray(F, np.float64), gain=float(gain), grid=grid,
                           virtual=self.virtual, maps=maps, gbuffer=gb, bounds=self.scene.bounds,
                           directions=self.directions, offset=lc.ray_offset_voxels * rc.voxel_size,
-                          ray_length=lc.ray_length)
-        self.last = self.renderer(inp)
+                          ray_length=lc.ray_length, light_rays=self.session.render.light_rays,
+                          scene=self.scene)
+        self.last_input, self.last = inp, self.renderer(inp)
         return composite(camera, self.last)

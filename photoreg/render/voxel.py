@@ -6,36 +6,78 @@ import numpy as np
 
 from photoreg.kernels.transfer import radiance_transfer
 from photoreg.lighting import sh
-from photoreg.render.composite import Layers, RenderInput, near_objects, shade, shadow_ratio, upsample_ratio
+from photoreg.lighting.parametric import ParametricLight, cone_directions, parametric_light
+from photoreg.render.composite import (Layers, RenderInput, bounce, near_objects, shade, shadow_ratio,
+                                      upsample_ratio)
 
 
-def _virtual_colour(inp: RenderInput, transfer: np.ndarray, covered: np.ndarray) -> np.ndarray:
-    """albedo * F.R * gain at covered pixels (camera units), zero elsewhere."""
+def _virtual_colour(inp: RenderInput, shading: np.ndarray, covered: np.ndarray) -> np.ndarray:
+    """albedo * shading (camera units, no albedo) at covered pixels, zero elsewhere."""
     colour = np.zeros(inp.camera.shape, np.float32)
-    colour[covered] = inp.gbuffer.albedo[covered] * np.maximum(shade(inp.F, transfer), 0.0) * inp.gain
+    colour[covered] = inp.gbuffer.albedo[covered] * np.maximum(shading, 0.0)
     return colour
+
+
+def real_radiance(inp: RenderInput, near: np.ndarray) -> np.ndarray:
+    """Mean camera radiance (3,) of the real surface near the objects: what a blocked ray sees (bounce)."""
+    s = inp.maps.stride
+    cam = inp.camera[::s, ::s][: near.shape[0], : near.shape[1]]
+    return cam[near].mean(axis=0) if near.any() else np.zeros(3, np.float32)
+
+
+def _disc_shading(inp: RenderInput, light: ParametricLight | None, points: np.ndarray,
+                  normals: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Camera-unit shading (no albedo) by the light's disc, gain * c/pi * mean over its rays of V max(n.w, 0),
+    under real and under real + virtual occlusion: (N, 3) each (zeros without a light)."""
+    if light is None or len(points) == 0:
+        zero = np.zeros((len(points), 3), np.float32)
+        return zero, zero
+    cone = cone_directions(light.direction, light.angle, inp.light_rays).astype(np.float32)
+    t = radiance_transfer(inp.grid, points, normals, cone, np.ones((len(cone), 1), np.float32), inp.offset,
+                          inp.ray_length, virtual=inp.virtual)
+    k = inp.gain * light.colour / np.pi / 4.0   # transfer = (4 / D) sum_visible cos
+    return t.transfer[:, :1] * k, t.transfer_rv[:, :1] * k
+
+
+def _shading(inp: RenderInput, F: np.ndarray, light, points, normals, l_real, l_virt):
+    """(S_TR, S_TRV) at points: F's SH transfer with one bounce (composite.bounce) plus the disc light."""
+    dirs, Y = inp.directions(sh.bands_of(F.shape[1]))
+    t = radiance_transfer(inp.grid, points, normals, dirs, Y, inp.offset, inp.ray_length, virtual=inp.virtual)
+    s_tr, s_trv = bounce(F, inp.gain, t.transfer, t.transfer_rv, l_real, l_virt)
+    d_tr, d_trv = _disc_shading(inp, light, points, normals)
+    return s_tr + d_tr, s_trv + d_trv
 
 
 def render_voxel(inp: RenderInput) -> Layers:
     """R_TR / R_TRV in one ray pass at the real surface near the objects (lighting stride, interpolated
-    back), and R_TRV at the virtual pixels with real geometry occluding (real shadows on the object)."""
-    dirs, Y = inp.directions(sh.bands_of(inp.F.shape[1]))
+    back), and R_TRV at the virtual pixels with real geometry occluding (real shadows on the object);
+    one ambient bounce each way (composite.bounce). With light_rays > 0 the dominant light is split out
+    of F (photoreg.lighting.parametric) and traced as a disc of that many rays: sharp shadows that a
+    few SH bands cannot hold; the residual SH keeps the rest."""
     maps, gb = inp.maps, inp.gbuffer
+    F, light, notes = inp.F, None, []
+    if inp.light_rays > 0:
+        light = parametric_light(inp.F, sh.dominant_direction(inp.F))
+        if light.lobe_share > 0:
+            F = light.residual
+        else:
+            light = None
+            notes.append("no directional light in F: SH transfer only")
     near = near_objects(maps, inp.bounds, inp.ray_length)
-    real = radiance_transfer(inp.grid, maps.vertex[near], maps.normal[near], dirs, Y, inp.offset, inp.ray_length,
-                             virtual=inp.virtual)
-    ratio_s = np.ones(maps.vertex.shape, np.float32)
-    ratio_s[near] = shadow_ratio(shade(inp.F, real.transfer), shade(inp.F, real.transfer_rv))
-    ratio = upsample_ratio(ratio_s, near, maps.stride, inp.camera.shape[:2])
+    l_real = real_radiance(inp, near)
     covered = gb.coverage > 0
-    virt = radiance_transfer(inp.grid, gb.position[covered], gb.normal[covered], dirs, Y, inp.offset,
-                             inp.ray_length, virtual=inp.virtual)
-    return Layers(_virtual_colour(inp, virt.transfer_rv, covered), gb.coverage, ratio)
+    s_virtual = _shading(inp, F, light, gb.position[covered], gb.normal[covered], l_real, l_real)[1]
+    colour = _virtual_colour(inp, s_virtual, covered)
+    l_virt = colour[covered].mean(axis=0) if covered.any() else np.zeros(3, np.float32)
+    ratio_s = np.ones(maps.vertex.shape, np.float32)
+    ratio_s[near] = shadow_ratio(*_shading(inp, F, light, maps.vertex[near], maps.normal[near], l_real, l_virt))
+    ratio = upsample_ratio(ratio_s, near, maps.stride, inp.camera.shape[:2])
+    return Layers(colour, gb.coverage, ratio, notes)
 
 
 def render_none(inp: RenderInput) -> Layers:
     """The object lit by the unoccluded lighting; real pixels unchanged (the 'no shadow' baseline)."""
     covered = inp.gbuffer.coverage > 0
     transfer = sh.unoccluded_transfer(inp.gbuffer.normal[covered], sh.bands_of(inp.F.shape[1]))
-    return Layers(_virtual_colour(inp, transfer, covered), inp.gbuffer.coverage,
+    return Layers(_virtual_colour(inp, inp.gain * shade(inp.F, transfer), covered), inp.gbuffer.coverage,
                   np.ones(inp.camera.shape, np.float32))
