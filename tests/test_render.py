@@ -165,3 +165,22 @@ def test_demo_composite_beats_no_shadow_baseline(demo_run):
 
     rows = [r for r in score_composites(demo_run, REPO / "data" / "demo")["per_frame"] if "si_rmse" in r]
     assert rows and all(r["si_rmse"] < r["baseline_si_rmse"] for r in rows)
+
+
+@pytest.mark.data
+@pytest.mark.parametrize("name", ["tum_fr1_rpy", "iclnuim_livingroom1"])
+def test_real_recording_sessions_insert_the_object(name, data_dir, tmp_path, monkeypatch):
+    """sessions/ has one session per shared real recording: it loads (paths through PHOTOREG_DATA) and a
+    short run (few rays) writes composites where the object is in view and changes the frame."""
+    from photoreg.config import load_session
+    from photoreg.io.images import read_exr
+    from photoreg.runner import run_session
+
+    monkeypatch.setenv("PHOTOREG_DATA", str(data_dir))
+    s = load_session(REPO / "sessions" / f"{name}.toml")
+    s.output.dir, s.frames, s.output.pictures_every = str(tmp_path), "0:2", 0
+    s.lighting.rays, s.lighting.stride = 16, 8
+    run_session(s, quiet=True)
+    ratio = read_exr(tmp_path / "lightmap" / "000001.exr")
+    comp = cv2.imread(str(tmp_path / "composite" / "000001.png"))
+    assert comp is not None and np.isfinite(ratio).all() and ratio.min() < 0.99   # a shadow or occlusion term

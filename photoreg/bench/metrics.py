@@ -128,6 +128,16 @@ def flicker(sequence, size: int = 64) -> float:
     return float(np.mean(terms)) if terms else 0.0
 
 
+def image_flicker(images, region: np.ndarray) -> float:
+    """Flicker E of an image sequence itself: mean over `region` pixels (bool HxW), channels and
+    consecutive pairs of exp(3 |I_t - I_(t-1)|) - 1, on linear images as they are (composites share the
+    camera's scale); 0 for fewer than two images or an empty region."""
+    imgs = [np.asarray(i, dtype=np.float64)[region] for i in images]
+    if len(imgs) < 2 or not region.any():
+        return 0.0
+    return float(np.mean([np.mean(np.exp(3.0 * np.abs(b - a)) - 1.0) for a, b in zip(imgs, imgs[1:])]))
+
+
 def summarize(values) -> dict[str, float | None]:
     """Median, mean and 90th percentile of the finite values (None when there are none) and their count."""
     v = np.asarray([x for x in values if x is not None and np.isfinite(x)], dtype=np.float64)

@@ -9,7 +9,9 @@ SH is non-finite, and frames of the recording with no line at all, are counted i
 Composites (--composite): for each insert render RECORDING/insert/NNNNNN.exr, the run's composite
 (OUT/composite_linear/NNNNNN.exr, else OUT/composite/NNNNNN.png decoded from sRGB) and the 'no
 shadow' baseline (camera frame with the perfect object pasted in) are compared with it over the
-object mask RECORDING/insert_mask/NNNNNN.png dilated by 40 px.
+object mask RECORDING/insert_mask/NNNNNN.png dilated by 40 px. Composite flicker (any recording with
+two or more composites, e.g. a static camera): metrics.image_flicker over the pixels the insertion
+changed, beside the camera frames' own flicker there.
 """
 from __future__ import annotations
 
@@ -196,13 +198,30 @@ def score_composites(out: str | Path, recording: str | Path) -> dict:
             "notes": notes, "per_frame": per_frame}
 
 
+def composite_flicker(out: str | Path, recording: str | Path) -> dict | None:
+    """Flicker E (metrics.image_flicker) of the run's consecutive composites (composite_linear/) over
+    the pixels the insertion changed in any of them, beside the camera frames' own flicker on the same
+    pixels (sensor or render noise sets that floor); None with fewer than two composites."""
+    files = sorted(p for p in (Path(out) / "composite_linear").glob("*.exr") if p.stem.isdigit())
+    if len(files) < 2:
+        return None
+    rgb = color_files(recording)
+    comps = [read_exr(p) for p in files]
+    cams = [srgb_to_linear(read_rgb(rgb[int(p.stem)])) for p in files]
+    region = np.any([np.abs(c - k).max(axis=-1) > 1e-3 for c, k in zip(comps, cams)], axis=0)
+    return {"frames": [int(p.stem) for p in files], "pixels": int(region.sum()),
+            "composite": metrics.image_flicker(comps, region), "camera": metrics.image_flicker(cams, region)}
+
+
 def score(out: str | Path, recording: str | Path, composite: bool = False) -> dict:
     """All scores of run folder `out` against `recording` as a JSON-ready dict."""
     gt = load_gt(recording)
     result = {"out": str(out), "recording": str(recording),
               "lighting": score_lighting(load_lighting(out), gt, len(color_files(recording)))}
     if composite:
-        result["composite"] = score_composites(out, recording)
+        inserts = any((Path(recording) / "insert").glob("*.exr"))
+        result["composite"] = score_composites(out, recording) if inserts else {"notes": ["no insert renders"]}
+        result["composite"]["flicker"] = composite_flicker(out, recording)
     return result
 
 
@@ -226,9 +245,15 @@ def format_report(result: dict) -> str:
     lines += [f"  note: {n}" for n in lt["notes"]]
     if "composite" in result:
         c = result["composite"]
-        lines.append(f"composite (ROI = object mask dilated by {c['roi_dilation_px']} px, linear RGB): "
-                     f"{c['n_inserts']} insert frames, {c['n_scored']} composites scored")
-        lines += _table(c["metrics"]) + [f"  note: {n}" for n in c["notes"]]
+        if "metrics" in c:
+            lines.append(f"composite (ROI = object mask dilated by {c['roi_dilation_px']} px, linear RGB): "
+                         f"{c['n_inserts']} insert frames, {c['n_scored']} composites scored")
+            lines += _table(c["metrics"])
+        lines += [f"  note: {n}" for n in c["notes"]]
+        fl = c["flicker"]
+        if fl is not None:
+            lines.append(f"composite flicker over {len(fl['frames'])} frames, {fl['pixels']} changed pixels: "
+                         f"{fl['composite']:.4g} (camera frames alone {fl['camera']:.4g})")
     return "\n".join(lines)
 
 
