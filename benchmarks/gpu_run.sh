@@ -16,3 +16,13 @@ for cfg in "1 169 4" "4 169 4" "4 64 3" "2 64 3"; do
   python3 -m photoreg bench speed "$rec" --device cuda --frames 0:30 --warmup 3 --stride $1 --rays $2 --bands $3 \
     --json "$out/speed_s$1_r$2_b$3.json" 2>/dev/null
 done
+# Peers in the same run (issue 9): Warp ray cast vs Open3D ray_cast, Warp visibility vs Embree.
+python3 benchmarks/peers.py "$rec" --device cuda --json "$out/peers_cuda.json"
+# Speed against error (issue 9): SWEEP_SCENES = recordings with lighting_gt.json made with `photoreg synth`
+# on the CPU machine (Mitsuba), e.g. ~/.cache/photoreg/bench_scenes/{tabletop,corner}-640x480-10f-64spp.
+# The CPU rows of benchmarks/speed_error.csv are kept: copy the merged table and plot back from OUTDIR.
+if [ -n "${SWEEP_SCENES:-}" ]; then
+  cp benchmarks/speed_error.csv "$out/speed_error.csv"
+  python3 -m photoreg bench sweep --recordings $SWEEP_SCENES --device cuda --frames 10 \
+    --csv "$out/speed_error.csv" --plot "$out/speed_error.png"
+fi

@@ -2,7 +2,9 @@
 
 Scene: photoreg.synth.analytic.box_room() (2 x 2 x 2 m), 640x480 depth, 1 cm voxels (block 16),
 ray cast at stride 4 (160x120 sample points), 64 rays per hemisphere, B = 3, 0.5 m rays.
-Run: python benchmarks/kernels_cpu.py [--device cpu|cuda] [--frames N] [--repeats N]
+On the CPU it also times the ray cast and the transfer with 1 thread against --threads threads
+(photoreg.kernels.launch), interleaved in one run so that both see the same machine load.
+Run: python benchmarks/kernels_cpu.py [--device cpu|cuda] [--frames N] [--repeats N] [--threads N]
 """
 from __future__ import annotations
 
@@ -44,6 +46,7 @@ def main(argv=None) -> int:
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--frames", type=int, default=8, help="frames fused before timing the other stages")
     ap.add_argument("--repeats", type=int, default=5)
+    ap.add_argument("--threads", type=int, default=os.cpu_count(), help="CPU threads compared with 1")
     args = ap.parse_args(argv)
     device = resolve_device(args.device)
 
@@ -93,7 +96,26 @@ def main(argv=None) -> int:
     print(f"{'stage':45s} {'median':>9s} {'min':>9s}  (ms, {args.repeats} runs)")
     for name, ms in rows:
         print(f"{name:45s} {statistics.median(ms):9.1f} {min(ms):9.1f}")
+    if device == "cpu":
+        compare_threads(grid, intr, view, maps, dirs, Y, cfg.voxel_size, args.threads, args.repeats)
     return 0
+
+
+def compare_threads(grid, intr, view, maps, dirs, Y, voxel, threads: int, repeats: int) -> None:
+    """Ray cast and transfer with 1 thread and with `threads`, alternating; median times and their ratio."""
+    cases = {
+        "raycast Warp, 640x480": lambda n: raycast_surface(grid, intr, view, 0.1, 4.0, threads=n),
+        "transfer, 160x120 x 64 rays": lambda n: radiance_transfer(grid, maps.vertex_wp, maps.normal_wp, dirs, Y,
+                                                                    offset=voxel, ray_length=0.5, threads=n),
+    }
+    print(f"\nthreads: 1 against {threads} (alternating, {repeats} runs each; load average {os.getloadavg()[0]:.1f})")
+    for name, fn in cases.items():
+        t = {1: [], threads: []}
+        for _ in range(repeats):
+            for n in t:
+                t[n] += timed(lambda: fn(n), 1)[0]
+        one, many = statistics.median(t[1]), statistics.median(t[threads])
+        print(f"{name:45s} 1 thread {one:8.1f} ms   {threads} threads {many:8.1f} ms   speed-up {one / many:.2f}x")
 
 
 if __name__ == "__main__":

@@ -10,6 +10,8 @@ import sys
 # (measured: solve 37 ms -> 650 ms on 2 cores with objects in the session). Set before numpy loads.
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
+from photoreg.config import SHADOW_RENDERERS  # noqa: E402  (after the BLAS setting)
+
 # subcommand -> "module:function"; the function takes the parsed argparse.Namespace and returns an exit code.
 HANDLERS = {
     "run": "photoreg.runner:run_command",
@@ -20,7 +22,8 @@ HANDLERS = {
     "serve": "photoreg.service.server:serve_command",
     "stream": "photoreg.service.client:stream_command",
     "batch": "photoreg.batch.runner:batch_command",
-    "bench": "photoreg.bench.speed:speed_command",
+    "bench": "photoreg.bench:bench_command",
+    "train": "photoreg.train:train_command",
 }
 
 
@@ -34,6 +37,7 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--voxel-size", type=float, help="TSDF voxel size in metres")
     p.add_argument("--ray-length", type=float, help="visibility ray length in metres")
     p.add_argument("--no-poses", action="store_true", help="ignore recorded poses and track the camera")
+    p.add_argument("--shadows", choices=SHADOW_RENDERERS, help="shadow renderer (overrides [render] shadows)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
@@ -117,7 +121,46 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--bands", type=int, default=3)
     b.add_argument("--voxel-size", type=float)
     b.add_argument("--ray-length", type=float)
+    b.add_argument("--threads", type=int, help="CPU threads for the split kernel launches (default: all cores)")
     b.add_argument("--json", dest="json_out", help="write the figures to this JSON file")
+    b = bsub.add_parser("sweep", help="speed against lighting error over stride x rays x bands x voxel size "
+                                      "on generated scenes with ground truth: CSV + Pareto plot")
+    b.add_argument("--scenes", default="tabletop,corner", help="scene kinds generated (once) into --synth-dir")
+    b.add_argument("--synth-dir", help="scene cache folder (default ~/.cache/photoreg/bench_scenes)")
+    b.add_argument("--recordings", nargs="+", help="use these recordings with lighting_gt.json instead of --scenes")
+    b.add_argument("--size", default="320x240", help="WxH of generated scenes")
+    b.add_argument("--frames", type=int, default=8, help="frames per recording")
+    b.add_argument("--spp", type=int, default=64, help="samples per pixel of generated scenes")
+    b.add_argument("--warmup", type=int, default=2, help="leading frames of each recording left out of the timings")
+    b.add_argument("--strides", default="1,2,4,8")
+    b.add_argument("--rays", default="16,64,169,300")
+    b.add_argument("--bands", default="2,3,4,5")
+    b.add_argument("--voxel-sizes", default="0.01,0.02", help="metres, comma-separated")
+    b.add_argument("--device", choices=["auto", "cpu", "cuda"], default=None)
+    b.add_argument("--threads", type=int, help="CPU threads for the split kernel launches (default: all cores)")
+    b.add_argument("--csv", default="benchmarks/speed_error.csv", help="results table (rows merged by device + setting)")
+    b.add_argument("--plot", default="benchmarks/speed_error.png", help="Pareto plot PNG")
+    b.add_argument("--plot-only", action="store_true", help="only redraw --plot from the rows in --csv")
+
+    b = bsub.add_parser("renderers", help="every shadow renderer on generated insert scenes: ms per frame "
+                                          "against composite error and flicker (benchmarks/renderers.md)")
+    b.add_argument("--scenes", default="tabletop,corner,plane,split_albedo,coloured", help="scene kinds")
+    b.add_argument("--renderers", help="comma-separated (default: every registered renderer)")
+    b.add_argument("--synth-dir", help="scene cache folder (default ~/.cache/photoreg/bench_scenes)")
+    b.add_argument("--size", default="160x120", help="WxH of generated scenes")
+    b.add_argument("--frames", type=int, default=8, help="frames per generated recording")
+    b.add_argument("--spp", type=int, default=32, help="samples per pixel of generated scenes")
+    b.add_argument("--device", choices=["auto", "cpu", "cuda"], default=None)
+    b.add_argument("--results-dir", default="benchmarks/results", help="per-device JSON rows go here")
+    b.add_argument("--md", default="benchmarks/renderers.md", help="report rebuilt from every device's rows")
+    b.add_argument("--plot", default="benchmarks/renderers.png", help="ms against si-RMSE plot")
+
+    p = sub.add_parser("train", help="train learned renderers' weights for a session's objects")
+    tsub = p.add_subparsers(dest="train_kind", required=True)
+    t = tsub.add_parser("neural_soft", help="neural soft-shadow MLP per object (cached by mesh hash)")
+    t.add_argument("session", help="session file (.toml) whose [[objects]] to train")
+    t.add_argument("--out", help="write weights here (default: the cache, $PHOTOREG_CACHE or ~/.cache/photoreg)")
+    t.add_argument("--force", action="store_true", help="train even when weights are cached")
 
     p = sub.add_parser("batch", help="run many session files, each into its own output folder (local workers or Ray)")
     p.add_argument("sessions", nargs="+", help="session files (sessions/*.toml); all are validated before any runs")

@@ -28,16 +28,19 @@ from .types import Frame, FrameResult, Intrinsics, Lighting, SolveDiagnostics
 
 
 class Pipeline:
-    """One pipeline per recording/stream: owns the volume, the direction set and the previous estimate."""
+    """One pipeline per recording/stream: owns (or shares) the volume, owns the direction set and the previous
+    estimate."""
 
-    def __init__(self, session: Session, intrinsics: Intrinsics):
+    def __init__(self, session: Session, intrinsics: Intrinsics, volume: TSDFVolume | None = None):
+        """`volume`: a fusion volume to share (its owner fuses; see observe/estimate), else a new one."""
         self.session = session
         self.intrinsics = intrinsics
         self.device = resolve_device(session.device)
         self._wp = init_warp()
         rc, lc = session.reconstruction, session.lighting
-        self.volume = TSDFVolume(FusionConfig(voxel_size=rc.voxel_size, trunc_voxels=rc.trunc_voxels,
-                                              depth_max=rc.depth_max, block_count=rc.block_count), self.device)
+        self.volume = volume if volume is not None else TSDFVolume(
+            FusionConfig(voxel_size=rc.voxel_size, trunc_voxels=rc.trunc_voxels, depth_max=rc.depth_max,
+                         block_count=rc.block_count), self.device)
         self.solver_cfg = SolverConfig.from_lighting(lc)
         self.dirs, self.Y = make_direction_set(lc.rays, self.solver_cfg.fit_bands, seed=0)
         self.filter = (LightingFilter(self.solver_cfg.fit_bands, FilterConfig(lc.process_noise, lc.change_threshold))
@@ -87,19 +90,31 @@ class Pipeline:
 
     def process(self, frame: Frame) -> FrameResult:
         """Run every stage on one frame; a weak or empty frame still yields a finite estimate."""
-        lc, rc = self.session.lighting, self.session.reconstruction
         t: dict[str, float] = {}
-        notes: list[str] = []
         t_all = time.perf_counter()
+        prep, pose, notes = self.observe(frame, t)
+        return self.estimate(frame, prep, pose, notes, t, t_all)
+
+    def observe(self, frame: Frame, t: dict[str, float]) -> tuple[Prepared, np.ndarray | None, list[str]]:
+        """Preprocess, pose and fuse one frame (the stages that no lighting setting changes); ms into t."""
+        lc, rc = self.session.lighting, self.session.reconstruction
         with self._timed(t, "preprocess"):
             prep = prepare(frame, lc, rc)
         with self._timed(t, "pose"):
-            pose, pose_notes = self._pose(frame, prep)
-        notes += pose_notes
-        F, diag, composite = None, None, None
+            pose, notes = self._pose(frame, prep)
         if pose is not None:
             with self._timed(t, "fuse"):
                 self.volume.integrate(prep.depth, prep.linear, self.intrinsics, pose)
+        return prep, pose, list(notes)
+
+    def estimate(self, frame: Frame, prep: Prepared, pose: np.ndarray | None, notes: list[str],
+                 t: dict[str, float], t_start: float | None = None) -> FrameResult:
+        """Ray cast, transfer, solve (and render) on the fused volume for an observed frame; ms into t,
+        t["total"] measured from t_start (default: now)."""
+        lc, rc = self.session.lighting, self.session.reconstruction
+        t_all = time.perf_counter() if t_start is None else t_start
+        F, diag, composite = None, None, None
+        if pose is not None:
             with self._timed(t, "raycast"):
                 grid = self.volume.dense_grid()
                 maps = raycast_surface(grid, self.intrinsics, pose, rc.depth_min, rc.depth_max, stride=lc.stride)

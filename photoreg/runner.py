@@ -40,7 +40,7 @@ def session_from_args(args) -> Session:
         s.recording.use_poses = False
     for opt, section, key in (("stride", "lighting", "stride"), ("rays", "lighting", "rays"),
                               ("bands", "lighting", "bands"), ("ray_length", "lighting", "ray_length"),
-                              ("voxel_size", "reconstruction", "voxel_size")):
+                              ("voxel_size", "reconstruction", "voxel_size"), ("shadows", "render", "shadows")):
         v = getattr(args, opt)
         if v is not None:
             setattr(getattr(s, section), key, v)

@@ -104,3 +104,21 @@ def test_degenerate_lighting(F, note):
 def test_bad_shape_is_an_error():
     with pytest.raises(ValueError, match="3, B"):
         parametric_light(np.zeros((9,)))
+
+
+def test_cone_directions_cover_the_disc_uniformly():
+    """The voxel renderer's disc rays: unit vectors within the cap, centred on the light, and uniform in
+    solid angle (half of them inside the cap of half the solid angle)."""
+    from photoreg.lighting.parametric import cone_directions
+
+    d = np.array([0.3, -0.4, 0.866])
+    d /= np.linalg.norm(d)
+    a = math.radians(12.0)
+    c = cone_directions(d, a, 400)
+    cos = c @ d
+    assert np.allclose(np.linalg.norm(c, axis=1), 1.0) and cos.min() >= math.cos(a) - 1e-9
+    assert np.degrees(np.arccos(min(1.0, float(c.mean(0) @ d / np.linalg.norm(c.mean(0)))))) < 0.2
+    half = 1.0 - 0.5 * (1.0 - math.cos(a))          # cos of the cap with half the solid angle
+    assert abs(np.mean(cos >= half) - 0.5) < 0.01
+    with pytest.raises(ValueError):
+        cone_directions(d, a, 0)

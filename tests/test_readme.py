@@ -4,7 +4,9 @@ how each one is run; a README command missing from it fails, so a new README com
 Docker commands are checked for consistency only (no Docker engine on CI); tests/test_docker.py checks the files."""
 from __future__ import annotations
 
+import dataclasses
 import glob
+import os
 import re
 import shlex
 import shutil
@@ -50,6 +52,9 @@ COMMANDS: dict[str, tuple[str, dict]] = {
         ("docker", {}),
     "docker run --rm --gpus all -p 127.0.0.1:8765:8765 photoreg:cuda": ("docker", {}),
     "docker compose -f docker/compose.yaml up -d --build": ("docker", {}),
+    "photoreg bench renderers --scenes tabletop,corner --size 160x120 --frames 8":
+        ("run", {"--scenes": "tabletop", "--size": "64x48", "--frames": "3", "--spp": "4", "--device": "cpu",
+                 "--synth-dir": "gen/bench"}),
     "photoreg bench speed path/to/recording --device cuda --stride 4 --rays 169 --bands 4":
         ("run", {"--device": "cpu", "--rays": "8", "--frames": "0:3", "--warmup": "1"}),
 }
@@ -120,8 +125,11 @@ def server(workspace):
 
 
 def run_photoreg(argv: list[str], cwd: Path) -> None:
+    env = dict(os.environ)
+    if shared_data() is not None:
+        env["PHOTOREG_DATA"] = str(shared_data())     # sessions/ reach the real recordings through it
     proc = subprocess.run([sys.executable, "-m", "photoreg", *argv], cwd=cwd, capture_output=True, text=True,
-                          timeout=300)
+                          timeout=300, env=env)
     assert proc.returncode == 0, f"photoreg {' '.join(argv)} exited {proc.returncode}:\n{proc.stdout}\n{proc.stderr}"
     if "--out" in argv:
         out = cwd / argv[argv.index("--out") + 1]
@@ -178,3 +186,29 @@ def test_readme_command(command, workspace, request):
             _, port = request.getfixturevalue("server")
             argv = with_options(argv, {"--url": f"ws://127.0.0.1:{port}"})
         run_photoreg(argv, workspace)
+
+
+def test_readme_session_reference_lists_every_key():
+    """The README's session-file reference (its ```toml block) names every key of every section with the
+    code's default, so a new or changed setting fails here until the README says so."""
+    from photoreg import config
+
+    if sys.version_info >= (3, 11):
+        import tomllib
+    else:  # pragma: no cover
+        import tomli as tomllib
+    (block,) = re.findall(r"```toml\n(.*?)```", (REPO / "README.md").read_text(), re.S)
+    ref = tomllib.loads(block)
+    session = config.Session()
+    tables = {"recording": session.recording, "reconstruction": session.reconstruction,
+              "lighting": session.lighting, "render": session.render, "output": session.output}
+    for name, obj in tables.items():
+        want = {f.name: getattr(obj, f.name) for f in dataclasses.fields(obj)}
+        got = ref[name]
+        if name == "recording":
+            got = {**got, "path": ""}                       # the example names a folder; the default is empty
+        assert got == want, f"README [{name}] differs from config.{type(obj).__name__}"
+    obj = config.ObjectConfig()
+    assert ref["objects"][0] == {**{f.name: getattr(obj, f.name) for f in dataclasses.fields(obj)},
+                                 "mesh": "object.obj"}
+    assert (ref["frames"], ref["device"]) == (session.frames, session.device)

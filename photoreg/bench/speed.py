@@ -37,6 +37,7 @@ def bench_recording(session: Session, warmup: int = 2) -> dict:
     import warp as wp
 
     from ..io.recording import iter_frames, open_recording
+    from ..kernels.launch import cpu_threads
     from ..pipeline import Pipeline
 
     rec = open_recording(session.recording.path, fmt=session.recording.format)
@@ -57,6 +58,7 @@ def bench_recording(session: Session, warmup: int = 2) -> dict:
         "device": pipe.device, "device_name": device_name(pipe.device),
         "warp": wp.__version__, "open3d": o3d.__version__,
         "fusion_on": str(pipe.volume.o3d_device), "recording": session.recording.path,
+        "threads": cpu_threads() if pipe.device == "cpu" else 0,
         "size": f"{rec.intrinsics.width}x{rec.intrinsics.height}", "frames_timed": len(timings),
         "stride": L.stride, "rays": L.rays, "bands": L.bands, "voxel_size": session.reconstruction.voxel_size,
         "ray_length": L.ray_length,
@@ -67,6 +69,10 @@ def bench_recording(session: Session, warmup: int = 2) -> dict:
 
 
 def speed_command(args) -> int:
+    from ..kernels.launch import set_cpu_threads
+
+    if args.threads is not None:
+        set_cpu_threads(args.threads)
     s = Session()
     s.recording.path = args.recording
     s.device = args.device or "auto"
@@ -79,7 +85,7 @@ def speed_command(args) -> int:
     validate(s)
     res = bench_recording(s, warmup=args.warmup)
     stages = "  ".join(f"{k} {v:.1f}" for k, v in res["ms_mean"].items())
-    print(f"{res['device_name']} ({res['device']}), {res['size']} stride {res['stride']} rays {res['rays']} "
+    print(f"{res['device_name']} ({res['device']}, {res['threads']} CPU threads), {res['size']} stride {res['stride']} rays {res['rays']} "
           f"bands {res['bands']}: {res['frames_per_s']} frames/s\n  mean ms: {stages}")
     if args.json_out:
         write_json(args.json_out, res)

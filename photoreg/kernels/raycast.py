@@ -16,6 +16,7 @@ import numpy as np
 from photoreg.device import init_warp
 from photoreg.io.poses import check_pose
 from photoreg.kernels.grid import DenseGrid, free_run, ray_box, sample_sdf
+from photoreg.kernels.launch import launch_rows
 from photoreg.types import Intrinsics
 
 wp = init_warp()
@@ -56,10 +57,11 @@ def sdf_normal(sdf: wp.array3d(dtype=wp.float32), origin: wp.vec3, inv_voxel: fl
 @wp.kernel
 def _raycast(sdf: wp.array3d(dtype=wp.float32), empty: wp.array3d(dtype=wp.uint8), cell: int, origin: wp.vec3,
              voxel: float, trunc: float, rot: wp.mat33, cam: wp.vec3, fx: float, fy: float, cx: float, cy: float,
-             stride: int, depth_min: float, depth_max: float, min_step: float,
+             stride: int, depth_min: float, depth_max: float, min_step: float, row0: int,
              depth: wp.array2d(dtype=wp.float32), vertex: wp.array2d(dtype=wp.vec3),
              normal: wp.array2d(dtype=wp.vec3)):
-    r, c = wp.tid()
+    tr, c = wp.tid()
+    r = row0 + tr
     depth[r, c] = 0.0
     vertex[r, c] = wp.vec3(0.0, 0.0, 0.0)
     normal[r, c] = wp.vec3(0.0, 0.0, 0.0)
@@ -127,9 +129,11 @@ def _raycast(sdf: wp.array3d(dtype=wp.float32), empty: wp.array3d(dtype=wp.uint8
 
 
 def raycast_surface(grid: DenseGrid, intr: Intrinsics, pose_c2w: np.ndarray, depth_min: float, depth_max: float,
-                    device: str | None = None, stride: int = 1, min_step_voxels: float = 0.5) -> SurfaceMaps:
+                    device: str | None = None, stride: int = 1, min_step_voxels: float = 0.5,
+                    threads: int | None = None) -> SurfaceMaps:
     """Ray cast the brick from a camera (pose camera-to-world) at every `stride`-th pixel; returns
-    maps of shape (ceil(H / stride), ceil(W / stride)). device defaults to (and must match) the grid's."""
+    maps of shape (ceil(H / stride), ceil(W / stride)). device defaults to (and must match) the grid's;
+    on the CPU image rows are split over `threads` threads (photoreg.kernels.launch)."""
     device = grid.device if device is None else str(wp.get_device(device))
     if device != grid.device:
         raise ValueError(f"raycast_surface: grid lives on {grid.device}, asked to run on {device}")
@@ -142,13 +146,13 @@ def raycast_surface(grid: DenseGrid, intr: Intrinsics, pose_c2w: np.ndarray, dep
     depth = wp.zeros((h, w), dtype=wp.float32, device=device)
     vertex = wp.zeros((h, w), dtype=wp.vec3, device=device)
     normal = wp.zeros((h, w), dtype=wp.vec3, device=device)
-    wp.launch(_raycast, dim=(h, w), device=device,
-              inputs=[grid.sdf, grid.empty, int(grid.cell), wp.vec3(*grid.origin), float(grid.voxel_size),
-                      float(grid.trunc),
-                      wp.mat33(*pose[:3, :3].ravel()), wp.vec3(*pose[:3, 3]), float(intr.fx), float(intr.fy),
-                      float(intr.cx), float(intr.cy), int(stride), float(depth_min), float(depth_max),
-                      float(min_step_voxels * grid.voxel_size)],
-              outputs=[depth, vertex, normal])
+    launch_rows(_raycast, (h, w), device=device, threads=threads,
+                inputs=[grid.sdf, grid.empty, int(grid.cell), wp.vec3(*grid.origin), float(grid.voxel_size),
+                        float(grid.trunc),
+                        wp.mat33(*pose[:3, :3].ravel()), wp.vec3(*pose[:3, 3]), float(intr.fx), float(intr.fy),
+                        float(intr.cx), float(intr.cy), int(stride), float(depth_min), float(depth_max),
+                        float(min_step_voxels * grid.voxel_size)],
+                outputs=[depth, vertex, normal])
     d = depth.numpy()
     return SurfaceMaps(depth=d, vertex=vertex.numpy(), normal=normal.numpy(), valid=d > 0, stride=stride,
                        depth_wp=depth, vertex_wp=vertex, normal_wp=normal)

@@ -18,6 +18,7 @@ import numpy as np
 
 from photoreg.device import init_warp
 from photoreg.kernels.grid import DenseGrid, free_run, ray_box, sample_sdf
+from photoreg.kernels.launch import launch_rows
 from photoreg.lighting.sh import bands_of, fibonacci_sphere, sh_basis
 
 wp = init_warp()
@@ -76,8 +77,10 @@ def _occlusion(sdf: wp.array3d(dtype=wp.float32), empty: wp.array3d(dtype=wp.uin
                voxel: float, trunc: float, points: wp.array(dtype=wp.vec3), normals: wp.array(dtype=wp.vec3),
                dirs: wp.array(dtype=wp.vec3), offset: float, ray_length: float, min_step: float,
                has_virtual: int, vsdf: wp.array3d(dtype=wp.float32), vempty: wp.array3d(dtype=wp.uint8), vcell: int,
-               vorigin: wp.vec3, vvoxel: float, vtrunc: float, vmin_step: float, occ: wp.array2d(dtype=wp.uint8)):
-    i, k = wp.tid()
+               vorigin: wp.vec3, vvoxel: float, vtrunc: float, vmin_step: float, row0: int,
+               occ: wp.array2d(dtype=wp.uint8)):
+    t, k = wp.tid()
+    i = row0 + t
     n = normals[i]
     w = dirs[k]
     bits = int(0)
@@ -93,9 +96,10 @@ def _occlusion(sdf: wp.array3d(dtype=wp.float32), empty: wp.array3d(dtype=wp.uin
 
 @wp.kernel
 def _project(normals: wp.array(dtype=wp.vec3), dirs: wp.array(dtype=wp.vec3), ytab: wp.array2d(dtype=wp.float32),
-             occ: wp.array2d(dtype=wp.uint8), mask: int, scale: float, transfer: wp.array2d(dtype=wp.float32),
-             visible: wp.array(dtype=wp.float32)):
-    i, k = wp.tid()
+             occ: wp.array2d(dtype=wp.uint8), mask: int, scale: float, row0: int,
+             transfer: wp.array2d(dtype=wp.float32), visible: wp.array(dtype=wp.float32)):
+    t, k = wp.tid()
+    i = row0 + t
     n = normals[i]
     acc = float(0.0)
     n_hemi = int(0)
@@ -139,10 +143,11 @@ def _as_warp(a, dtype, device: str, what: str, inner: int | None):
 
 def radiance_transfer(grid: DenseGrid, points, normals, dirs, ytable, offset: float, ray_length: float,
                       device: str | None = None, min_step_voxels: float = 0.5,
-                      virtual: DenseGrid | None = None) -> TransferResult:
+                      virtual: DenseGrid | None = None, threads: int | None = None) -> TransferResult:
     """R_TR and visible fraction at world points (N, 3) with unit world normals (N, 3; zero = skip),
     numpy or Warp (vec3, any shape: flattened), over the direction set from make_direction_set.
-    With `virtual` (the virtual objects' SDF grid) the same ray pass also gives R_TRV (transfer_rv)."""
+    With `virtual` (the virtual objects' SDF grid) the same ray pass also gives R_TRV (transfer_rv).
+    On the CPU the launches are split over `threads` threads (photoreg.kernels.launch)."""
     device = grid.device if device is None else str(wp.get_device(device))
     if device != grid.device:
         raise ValueError(f"radiance_transfer: grid lives on {grid.device}, asked to run on {device}")
@@ -166,22 +171,20 @@ def radiance_transfer(grid: DenseGrid, points, normals, dirs, ytable, offset: fl
     visible = wp.zeros(N, dtype=wp.float32, device=device)
     v = grid if virtual is None else virtual  # a stand-in when there is no virtual grid (never marched)
     transfer_rv = visible_rv = None
-    if N > 0:
-        wp.launch(_occlusion, dim=(N, D), device=device,
-                  inputs=[grid.sdf, grid.empty, int(grid.cell), wp.vec3(*grid.origin), float(grid.voxel_size),
-                          float(grid.trunc), p, n, w, float(offset), float(ray_length),
-                          float(min_step_voxels * grid.voxel_size), int(virtual is not None), v.sdf, v.empty,
-                          int(v.cell), wp.vec3(*v.origin), float(v.voxel_size), float(v.trunc),
-                          float(min_step_voxels * v.voxel_size)],
-                  outputs=[occ])
-        wp.launch(_project, dim=(N, K), device=device, inputs=[n, w, y, occ, REAL, 4.0 / D],
-                  outputs=[transfer, visible])
+    launch_rows(_occlusion, (N, D), device=device, threads=threads,
+                inputs=[grid.sdf, grid.empty, int(grid.cell), wp.vec3(*grid.origin), float(grid.voxel_size),
+                        float(grid.trunc), p, n, w, float(offset), float(ray_length),
+                        float(min_step_voxels * grid.voxel_size), int(virtual is not None), v.sdf, v.empty,
+                        int(v.cell), wp.vec3(*v.origin), float(v.voxel_size), float(v.trunc),
+                        float(min_step_voxels * v.voxel_size)],
+                outputs=[occ])
+    launch_rows(_project, (N, K), device=device, threads=threads, inputs=[n, w, y, occ, REAL, 4.0 / D],
+                outputs=[transfer, visible])
     if virtual is not None:
         trv = wp.zeros((N, K), dtype=wp.float32, device=device)
         vrv = wp.zeros(N, dtype=wp.float32, device=device)
-        if N > 0:
-            wp.launch(_project, dim=(N, K), device=device, inputs=[n, w, y, occ, REAL | VIRTUAL, 4.0 / D],
-                      outputs=[trv, vrv])
+        launch_rows(_project, (N, K), device=device, threads=threads, inputs=[n, w, y, occ, REAL | VIRTUAL, 4.0 / D],
+                    outputs=[trv, vrv])
         transfer_rv, visible_rv = trv.numpy(), vrv.numpy()
     return TransferResult(transfer=transfer.numpy(), visible_fraction=visible.numpy(), transfer_wp=transfer,
                           visible_fraction_wp=visible, occlusion_wp=occ, transfer_rv=transfer_rv,

@@ -197,6 +197,12 @@ def cone_directions(direction: np.ndarray, angle: float, n: int) -> np.ndarray:
     r = np.sqrt(np.maximum(0.0, 1.0 - z * z))
     local = np.stack([r * np.cos(phi), r * np.sin(phi), z], axis=1)
     d = np.asarray(direction, dtype=np.float64) / max(float(np.linalg.norm(direction)), 1e-12)
-    t = np.cross(d, [1.0, 0.0, 0.0] if abs(d[0]) < 0.9 else [0.0, 1.0, 0.0])
-    t /= np.linalg.norm(t)
-    return local @ np.stack([t, np.cross(d, t), d])
+    return local @ np.stack([*light_basis(d), d])
+
+
+def light_basis(d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Unit u, v with (u, v, d) orthonormal (d a unit vector)."""
+    a = np.array([1.0, 0.0, 0.0]) if abs(d[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    u = np.cross(a, d)
+    u /= np.linalg.norm(u)
+    return u, np.cross(d, u)

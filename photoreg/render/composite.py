@@ -13,6 +13,7 @@ The ratio is clipped to [0, 1]: a virtual object takes away more light than it r
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from functools import cached_property
 from typing import Callable
 
 import cv2
@@ -21,6 +22,7 @@ import numpy as np
 from photoreg.kernels.grid import DenseGrid
 from photoreg.kernels.raycast import SurfaceMaps
 from photoreg.lighting import sh
+from photoreg.lighting.parametric import ParametricLight, parametric_light
 from photoreg.render.gbuffer import GBuffer
 from photoreg.render.scene import VirtualScene
 
@@ -44,6 +46,13 @@ class RenderInput:
     ray_length: float               # metres
     light_rays: int = 0             # rays over the dominant light's disc (0: the light stays in F's SH)
     scene: VirtualScene | None = None  # the placed objects (renderers that work per object need it)
+
+
+    @cached_property
+    def light(self) -> ParametricLight:
+        """The frame's parametric light (one per frame, shared by the renderers), directed along F's band 1:
+        an estimate's best observed band (its higher bands pulled a free fit 25 deg off on the demo)."""
+        return parametric_light(self.F, sh.dominant_direction(self.F))
 
 
 @dataclass

@@ -5,11 +5,15 @@ from __future__ import annotations
 from typing import Callable
 
 from photoreg.render.composite import Layers, RenderInput
+from photoreg.render.neural_soft import render_neural_soft
+from photoreg.render.shadowmap import render_shadowmap
 from photoreg.render.voxel import render_none, render_voxel
 
 RENDERERS: dict[str, Callable[[RenderInput], Layers]] = {
     "voxel": render_voxel,
     "none": render_none,
+    "shadowmap": render_shadowmap,
+    "neural_soft": render_neural_soft,
 }
 
 

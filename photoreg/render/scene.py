@@ -31,6 +31,12 @@ class VirtualObject:
     vertices: np.ndarray        # (V, 3) float64 world positions
     faces: np.ndarray           # (F, 3) int64
     albedo: np.ndarray          # (3,) float32 linear RGB
+    transform: np.ndarray       # (4, 4) object-to-world (object_transform)
+
+    def local_vertices(self) -> np.ndarray:
+        """(V, 3) vertices in the mesh file's own frame (the transform undone)."""
+        T = self.transform
+        return np.linalg.solve(T[:3, :3], (self.vertices - T[:3, 3]).T).T
 
 
 @dataclass
@@ -88,7 +94,7 @@ def load_object(obj: ObjectConfig) -> VirtualObject:
     if not np.all(np.isfinite(mesh.vertices)):
         raise ValueError(f"{path}: mesh has non-finite vertices")
     v = np.asarray(mesh.vertices, np.float64) @ T[:3, :3].T + T[:3, 3]
-    return VirtualObject(str(path), v, np.asarray(mesh.faces, np.int64), albedo.astype(np.float32))
+    return VirtualObject(str(path), v, np.asarray(mesh.faces, np.int64), albedo.astype(np.float32), T)
 
 
 def load_scene(objects: list[ObjectConfig]) -> VirtualScene:

@@ -6,7 +6,7 @@ import numpy as np
 
 from photoreg.kernels.transfer import radiance_transfer
 from photoreg.lighting import sh
-from photoreg.lighting.parametric import ParametricLight, cone_directions, parametric_light
+from photoreg.lighting.parametric import ParametricLight, cone_directions
 from photoreg.render.composite import (Layers, RenderInput, bounce, near_objects, shade, shadow_ratio,
                                       upsample_ratio)
 
@@ -57,7 +57,7 @@ def render_voxel(inp: RenderInput) -> Layers:
     maps, gb = inp.maps, inp.gbuffer
     F, light, notes = inp.F, None, []
     if inp.light_rays > 0:
-        light = parametric_light(inp.F, sh.dominant_direction(inp.F))
+        light = inp.light
         if light.lobe_share > 0:
             F = light.residual
         else:

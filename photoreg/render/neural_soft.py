@@ -1,0 +1,98 @@
+"""`neural_soft` renderer (Sommer et al., WSCG 2023): each object's soft shadow on its ground plane comes
+from a small MLP f(u, v, d) -> visibility trained on ray-traced textures (photoreg.train.neural_soft).
+
+Per frame: the parametric light of F (photoreg.lighting.parametric) gives the light direction and the
+shadow opacity. Real receivers near the objects (at the lighting stride) are taken into each object's
+local frame; those within PLANE_TOLERANCE of its ground plane are moved along the light direction onto
+the plane, looked up in the object's texture square, and get ratio = 1 - opacity * (1 - visibility)
+(visibilities of several objects multiply). Receivers off the plane keep ratio 1: the method models
+ground-plane shadows only. Lights lower than the training range (theta > theta_max) are clamped to it.
+The object itself is shaded as by `none` (unoccluded SH lighting). Numpy inference; no PyTorch.
+Weights: user cache or committed data/weights, else trained once on first use (minutes, with progress).
+"""
+from __future__ import annotations
+
+import math
+import os
+
+import numpy as np
+
+from photoreg.lighting.parametric import receiver_opacity
+from photoreg.render.composite import Layers, RenderInput, near_objects, upsample_ratio
+from photoreg.render.neural_soft_weights import NeuralSoftSettings, find_weights, load_weights, weights_key
+from photoreg.render.scene import VirtualObject
+from photoreg.render.shadow_mlp import ShadowMLP, predict
+from photoreg.render.shadow_texture import PLANE_SIDE, TextureFrame, texture_frame
+from photoreg.render.voxel import render_none
+
+PLANE_TOLERANCE = 0.05   # receivers within this share of the object's extent (+ the ray offset) of its plane
+MIN_ELEVATION = 1e-3     # light direction's local z below this: the plane is unlit, no shadow to draw
+
+_LOADED: dict[tuple, tuple[ShadowMLP, TextureFrame]] = {}   # per process: mesh file state -> net, frame
+
+
+def object_net(obj: VirtualObject, settings: NeuralSoftSettings = NeuralSoftSettings()) -> tuple[ShadowMLP, TextureFrame]:
+    """The object's net and texture frame: loaded once per process (keyed by the mesh file's path, size and
+    mtime), from the cache or the committed weights, else trained now and cached."""
+    st = os.stat(obj.source)
+    memo = (os.path.abspath(obj.source), st.st_size, st.st_mtime_ns, settings)
+    if memo not in _LOADED:
+        path = find_weights(weights_key(obj.source, settings))
+        if path is None:
+            from photoreg.train.neural_soft import stderr_progress, train_mesh
+
+            stderr_progress(f"no weights for {obj.source}: training them now (once; cached afterwards)")
+            path = train_mesh(obj.source, obj.local_vertices(), obj.faces, settings)
+        _LOADED[memo] = (load_weights(path)[0], texture_frame(obj.local_vertices()))
+    return _LOADED[memo]
+
+
+def plane_visibility(obj: VirtualObject, points: np.ndarray, light_dir: np.ndarray, tolerance: float,
+                     settings: NeuralSoftSettings = NeuralSoftSettings()) -> tuple[np.ndarray, list[str]]:
+    """Visibility (N,) in [0, 1] of the light at world points (N, 3) under `obj`'s shadow (1 where the
+    texture does not reach: off its plane by more than `tolerance` metres, or outside the square)."""
+    net, frame = object_net(obj, settings)
+    T = obj.transform
+    scale = float(np.cbrt(np.linalg.det(T[:3, :3])))
+    rot = T[:3, :3] / scale
+    d = rot.T @ np.asarray(light_dir, np.float64)
+    vis = np.ones(len(points), np.float32)
+    notes: list[str] = []
+    if d[2] < MIN_ELEVATION:
+        return vis, [f"{obj.source}: light at or below its ground plane: no plane shadow"]
+    theta_max = math.radians(settings.theta_max_deg)
+    if math.acos(min(d[2], 1.0)) > theta_max:
+        phi = math.atan2(d[1], d[0])
+        d = np.array([math.sin(theta_max) * math.cos(phi), math.sin(theta_max) * math.sin(phi), math.cos(theta_max)])
+        notes.append(f"{obj.source}: light lower than the trained {settings.theta_max_deg:g} deg from zenith: clamped")
+    local = (np.asarray(points, np.float64) - T[:3, 3]) @ rot / scale
+    h = local[:, 2] - frame.z0
+    on_plane = np.abs(h) <= tolerance / scale
+    plane = local - (h / d[2])[:, None] * d                      # along the light onto the plane
+    uv = frame.uv(plane)
+    use = on_plane & np.all((uv >= 0.0) & (uv <= 1.0), axis=1)
+    vis[use] = predict(net, uv[use], d)
+    return vis, notes
+
+
+def render_neural_soft(inp: RenderInput) -> Layers:
+    """Object as `none`; real pixels near the objects darkened by the MLP shadow textures (module doc)."""
+    if inp.scene is None:
+        raise ValueError("neural_soft: RenderInput.scene is missing (the renderer works per object)")
+    base = render_none(inp)
+    light = inp.light
+    maps = inp.maps
+    extent = float((inp.bounds[1] - inp.bounds[0]).max())
+    near = near_objects(maps, inp.bounds, PLANE_SIDE * extent)
+    pts, normals = maps.vertex[near], maps.normal[near]
+    vis = np.ones(len(pts), np.float32)
+    notes = list(light.notes)
+    for obj in inp.scene.objects:
+        tol = PLANE_TOLERANCE * float((obj.vertices.max(0) - obj.vertices.min(0)).max()) + inp.offset
+        v, n = plane_visibility(obj, pts, light.direction, tol)
+        vis *= v
+        notes += n
+    ratio_s = np.ones(maps.vertex.shape, np.float32)
+    ratio_s[near] = 1.0 - receiver_opacity(light, normals) * (1.0 - vis)[:, None]
+    ratio = upsample_ratio(ratio_s, near, maps.stride, inp.camera.shape[:2])
+    return Layers(base.colour, base.alpha, ratio, base.notes + notes)
