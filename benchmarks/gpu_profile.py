@@ -58,7 +58,7 @@ def main() -> None:
     ap.add_argument("--device", default="cuda")
     ap.add_argument("--json")
     a = ap.parse_args()
-    from photoreg.device import init_warp
+    from photoreg.device import init_warp, resolve_device
     from photoreg.io.recording import iter_frames, open_recording
     from photoreg.kernels.raycast import raycast_surface
     from photoreg.recon.fusion import FusionConfig, TSDFVolume
@@ -66,6 +66,7 @@ def main() -> None:
     from photoreg.types import Intrinsics
 
     wp = init_warp()
+    a.device = resolve_device(a.device)
     res: dict = {"device": wp.get_device(a.device).name}
     rec = open_recording(a.recording)
     vol = TSDFVolume(FusionConfig(), device=a.device)

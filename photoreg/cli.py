@@ -6,9 +6,11 @@ import importlib
 import os
 import sys
 
-# Per-frame solves are small: a threaded BLAS only contends with the renderer and Warp for cores
-# (measured: solve 37 ms -> 650 ms on 2 cores with objects in the session). Set before numpy loads.
-os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+# On a few cores a threaded BLAS only contends with the renderer and Warp (measured: solve 37 ms -> 650 ms
+# on 2 cores with objects in the session); on many it pays (H100 host, 16 cores: solve 13 ms threaded,
+# 108 ms on one thread). Set before numpy loads.
+if (os.cpu_count() or 1) <= 4:
+    os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 from photoreg.config import SHADOW_RENDERERS  # noqa: E402  (after the BLAS setting)
 
