@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # The one install path for README, CI and Docker.
 # usage: scripts/install.sh [EXTRAS]   (default extras: render,synth,plot,serve,ray,test)
+# PHOTOREG_TRAIN=1 also installs the `train` extra (CPU PyTorch, onnx) for photoreg.train.
 # Picks the Open3D build: the CUDA one where nvidia-smi sees a GPU (or PHOTOREG_CUDA=1), else open3d-cpu.
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -30,6 +31,11 @@ else
 fi
 $py -m pip install -q --upgrade pip
 $py -m pip install -q -e ".[$o3d,$extras]"
+# Opt-in training extra (PHOTOREG_TRAIN=1): PyTorch's CPU build from its own index, then the `train` extra.
+if [ "${PHOTOREG_TRAIN:-}" = 1 ]; then
+  $py -m pip install -q torch --index-url https://download.pytorch.org/whl/cpu
+  $py -m pip install -q -e ".[train]"
+fi
 # pyrender 0.1.45 pins PyOpenGL 3.1.0, which fails under OSMesa: 3.1.10 over it.
 if [[ ",$extras," == *",render,"* ]]; then
   $py -m pip install -q --no-deps "PyOpenGL==3.1.10"

@@ -52,6 +52,11 @@ COMMANDS: dict[str, tuple[str, dict]] = {
         ("docker", {}),
     "docker run --rm --gpus all -p 127.0.0.1:8765:8765 photoreg:cuda": ("docker", {}),
     "docker compose -f docker/compose.yaml up -d --build": ("docker", {}),
+    "photoreg bench sweep --scenes tabletop --size 320x240 --frames 8 --strides 4,8 --rays 16,64 --bands 3,5 "
+    "--voxel-sizes 0.02":
+        ("run", {"--size": "64x48", "--frames": "3", "--spp": "4", "--warmup": "1", "--strides": "8",
+                 "--rays": "8", "--bands": "2", "--device": "cpu", "--synth-dir": "gen/sweep",
+                 "--csv": "out/sweep.csv", "--plot": "out/sweep.png"}),
     "photoreg bench renderers --scenes tabletop,corner --size 160x120 --frames 8":
         ("run", {"--scenes": "tabletop", "--size": "64x48", "--frames": "3", "--spp": "4", "--device": "cpu",
                  "--synth-dir": "gen/bench"}),

@@ -5,6 +5,7 @@ from __future__ import annotations
 from typing import Callable
 
 from photoreg.render.composite import Layers, RenderInput
+from photoreg.render.neural_shadowmap import render_neural_shadowmap
 from photoreg.render.neural_soft import render_neural_soft
 from photoreg.render.shadowmap import render_shadowmap
 from photoreg.render.voxel import render_none, render_voxel
@@ -14,6 +15,7 @@ RENDERERS: dict[str, Callable[[RenderInput], Layers]] = {
     "none": render_none,
     "shadowmap": render_shadowmap,
     "neural_soft": render_neural_soft,
+    "neural_shadowmap": render_neural_shadowmap,
 }
 
 
