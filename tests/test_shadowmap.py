@@ -51,7 +51,17 @@ def _real_grid(wall: bool, voxel=0.02, trunc=0.08):
     return sdf_grid(sdf, origin, voxel, trunc, "cpu")
 
 
-def _input(tmp_path, F, wall=False) -> RenderInput:
+def _wall_shadow_pixels() -> np.ndarray:
+    """Floor pixels in the WALL's real shadow (the sun is toward +x, 30 deg from zenith)."""
+    xs = np.arange(INTR.width)
+    ys = np.arange(INTR.height)
+    x = (xs[None, :] - INTR.cx) / INTR.fx                     # floor z = 0 is 1 m from the camera
+    y = -(ys[:, None] - INTR.cy) / INTR.fy
+    reach = WALL[1][2] * math.tan(math.radians(30))
+    return (x > WALL[0][0] - reach + 0.02) & (x < WALL[0][0] - 0.02) & (y < -0.02) & (y > WALL[0][1] + 0.02)
+
+
+def _input(tmp_path, F, wall=False, wall_ratio=None) -> RenderInput:
     mesh = tmp_path / "cube.obj"
     trimesh.creation.box(extents=(1, 1, 1)).export(mesh)
     scene = load_scene([ObjectConfig(mesh=str(mesh), position=[0.0, 0.0, sum(CUBE_Z) / 2], scale=0.2)])
@@ -59,6 +69,8 @@ def _input(tmp_path, F, wall=False) -> RenderInput:
     maps = raycast_surface(grid, INTR, LOOK_DOWN, 0.1, 3.0, stride=2)
     gb = GBufferRenderer(scene, INTR, 2).render(LOOK_DOWN, raycast_surface(grid, INTR, LOOK_DOWN, 0.1, 3.0).depth)
     camera = np.full((INTR.height, INTR.width, 3), 0.4, np.float32)
+    if wall_ratio is not None:                                    # the frame shows the wall's real shadow
+        camera[_wall_shadow_pixels()] *= np.asarray(wall_ratio, np.float32)
     return RenderInput(camera, F, 1.0, grid, voxel_grid(scene, 0.02, "cpu"), maps, gb, scene.bounds,
                        lambda b: make_direction_set(32, b, seed=0), 0.03, 1.5, scene=scene)
 
@@ -133,9 +145,9 @@ def test_pcss_penumbra_widens_with_the_light_size(tmp_path):
 
 
 def test_real_shadow_is_not_darkened_twice(tmp_path):
-    inp = _input(tmp_path, _sun_and_sky(), wall=True)
+    light = parametric_light(_sun_and_sky())
+    inp = _input(tmp_path, _sun_and_sky(), wall=True, wall_ratio=1 - light.opacity)   # as the light predicts
     layers = get_renderer("shadowmap")(inp)
-    light = parametric_light(inp.F)
     truth = _analytic_shadow() & (inp.gbuffer.coverage == 0)
     core = cv2.erode(truth.astype(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)
     rows = np.arange(INTR.height)[:, None]
@@ -145,6 +157,20 @@ def test_real_shadow_is_not_darkened_twice(tmp_path):
     assert open_part.sum() > 20 and walled.sum() > 20
     np.testing.assert_allclose(layers.ratio[open_part].mean(0), 1 - light.opacity, atol=0.03)
     assert layers.ratio[walled].min() > 0.95                      # already in the wall's shadow: left alone
+
+
+def test_virtual_shadow_takes_the_measured_strength(tmp_path):
+    """Jacobs et al.: where the frame shows real shadows, the virtual shadow is as dark as they are
+    (here half the lit radiance), not as dark as the parametric light says (about 0.9 of it blocked)."""
+    inp = _input(tmp_path, _sun_and_sky(), wall=True, wall_ratio=0.5)
+    layers = get_renderer("shadowmap")(inp)
+    assert any("measured" in n for n in layers.notes)
+    core = cv2.erode((_analytic_shadow() & (inp.gbuffer.coverage == 0)).astype(np.uint8),
+                     np.ones((5, 5), np.uint8)).astype(bool)
+    open_part = core & (np.arange(INTR.height)[:, None] < INTR.cy - 5)
+    assert open_part.sum() > 20
+    np.testing.assert_allclose(layers.ratio[open_part].mean(0), 0.5, atol=0.05)
+    assert parametric_light(inp.F).opacity.min() > 0.8                # the parametric strength would differ
 
 
 @pytest.mark.parametrize("F", [np.zeros((3, 25)), np.full((3, 25), np.nan), _sun_and_sky(sun=0.0)])

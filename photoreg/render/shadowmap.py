@@ -6,6 +6,8 @@ Real pixels. With o the lobe's share of the irradiance at the receiver (receiver
 shadow and v the share of the light's disc the real geometry leaves open, the camera shows
 E_amb + E_lobe v; the object removes E_lobe v s, so
     ratio = 1 - s o v / ((1 - o) + o v)      (= 1 - o s when the light is open; 1 under a real shadow).
+The strength o is measured where the frame shows it (measured_opacity: per material, shadowed against lit
+real radiance where the real geometry blocks the light), else the parametric lobe share.
 Receivers are the real surface at the lighting stride inside the map's footprint (widened by the largest
 filter radius), not only those within ray_length: a low light casts shadows farther than the voxel rays reach.
 Virtual pixels: albedo * gain / pi * (E_residual(n) + E_lobe max(n.d, 0) (1 - s_self) v), the units of
@@ -18,7 +20,9 @@ import math
 import numpy as np
 
 from photoreg.kernels.shadowmap import ShadowMap, depth_map, real_light_visibility, shadow_lookup
+from photoreg.lighting import albedo as alb
 from photoreg.lighting import sh
+from photoreg.lighting.solver import SolverConfig
 from photoreg.lighting.parametric import ParametricLight, light_basis, receiver_opacity
 from photoreg.render.composite import Layers, RenderInput, upsample_ratio
 
@@ -27,6 +31,7 @@ PAD_TEXELS = 2          # empty border around the objects' footprint
 MAX_RADIUS = RESOLUTION / 4  # largest blocker-search / filter radius, texels: a 30 deg light's penumbra from
                              # blockers up to 0.44 map sides high (the tap count, not the radius, sets the cost)
 REAL_SAMPLES = 8        # rays over the light's disc for the real geometry's visibility
+MEASURE_MIN = 12        # shadowed and lit samples a material needs for a measured shadow strength
 SELF_OFFSET_TEXELS = 2.0  # normal offset of virtual receivers' lookups (the real surface is not in the map:
                           # no offset, which would shift its shadow toward the object by offset * tan(theta))
 
@@ -60,6 +65,37 @@ def protected_ratio(shadow: np.ndarray, opacity: np.ndarray, real_vis: np.ndarra
     return np.clip(1.0 - lost, 0.0, 1.0).astype(np.float32)
 
 
+def measured_opacity(colour: np.ndarray, normals: np.ndarray, light: ParametricLight, real_vis: np.ndarray,
+                     min_count: int = MEASURE_MIN) -> tuple[np.ndarray, list[str]]:
+    """Shadow strength (N, 3) per material, measured in the frame (Jacobs et al.): real surface points
+    facing the light (n.d > 0.3) are grouped by chromaticity (photoreg.lighting.albedo.cluster); in each
+    group 1 - median(shadowed) / median(lit) of their radiance divided by the parametric light's
+    unshadowed shading, shadowed = the real geometry blocks the light (real_vis < 0.1), lit = real_vis >
+    0.9. Groups with fewer than `min_count` of either keep the parametric opacity (receiver_opacity);
+    returns the strengths for all N points and notes saying which groups were measured."""
+    opacity = receiver_opacity(light, normals)
+    facing = (normals @ light.direction) > 0.3
+    if np.count_nonzero(facing & (real_vis < 0.1)) < min_count:
+        return opacity, []
+    cos = np.maximum(normals @ light.direction, 0.0)[:, None]
+    expected = np.maximum(sh.irradiance(light.residual, normals), 0.0) + cos * light.lobe_irradiance()[None]
+    reflect = colour / np.maximum(expected, 1e-12)                       # albedo-like, per channel
+    labels = alb.cluster(alb.colour_features(colour, with_intensity=False), SolverConfig.chroma_bandwidth,
+                         min_count)
+    notes = []
+    for g in range(int(labels.max()) + 1 if labels.size else 0):
+        mine = labels == g
+        sh_ = mine & facing & (real_vis < 0.1)
+        lit = mine & facing & (real_vis > 0.9)
+        if sh_.sum() < min_count or lit.sum() < min_count:
+            continue
+        strength = 1.0 - np.median(reflect[sh_], axis=0) / np.maximum(np.median(reflect[lit], axis=0), 1e-12)
+        opacity[mine] = np.clip(strength, 0.0, 1.0)
+        notes.append(f"shadowmap: material {g} shadow strength measured {np.round(np.clip(strength, 0, 1), 2).tolist()} "
+                     f"({int(sh_.sum())} shadowed / {int(lit.sum())} lit samples)")
+    return opacity, notes
+
+
 def _virtual_colour(inp: RenderInput, light: ParametricLight, lobe_vis: np.ndarray, covered: np.ndarray) -> np.ndarray:
     """albedo * gain / pi * (E_residual(n) + E_lobe max(n.d, 0) lobe_vis) at covered pixels, zero elsewhere."""
     n = inp.gbuffer.normal[covered]
@@ -89,13 +125,20 @@ def render_shadowmap(inp: RenderInput) -> Layers:
     notes.append(f"shadowmap: light {np.round(light.direction, 3).tolist()}, angle {math.degrees(light.angle):.1f} deg, "
                  f"opacity {np.round(light.opacity, 3).tolist()}, texel {smap.texel * 1000:.1f} mm")
 
-    sel = maps.valid & in_footprint(smap, maps.vertex, RESOLUTION, MAX_RADIUS)
+    valid = maps.valid
+    all_vis = np.zeros(valid.shape, np.float32)
+    all_vis[valid] = real_light_visibility(inp.grid, maps.vertex[valid], maps.normal[valid], smap.d, smap.u, smap.v,
+                                           tan_a, inp.offset, inp.ray_length, samples=REAL_SAMPLES)
+    s = maps.stride
+    cam = inp.camera[::s, ::s][: valid.shape[0], : valid.shape[1]]
+    strength = np.zeros(valid.shape + (3,), np.float32)
+    strength[valid], measured = measured_opacity(cam[valid], maps.normal[valid], light, all_vis[valid])
+    notes += measured
+    sel = valid & in_footprint(smap, maps.vertex, RESOLUTION, MAX_RADIUS)
     pts, nrm = maps.vertex[sel], maps.normal[sel]
     shadow, _ = shadow_lookup(smap, pts, nrm, tan_a, 0.0, max_radius=MAX_RADIUS)
-    real_vis = real_light_visibility(inp.grid, pts, nrm, smap.d, smap.u, smap.v, tan_a, inp.offset, inp.ray_length,
-                                     samples=REAL_SAMPLES)
     ratio_s = np.ones(maps.vertex.shape, np.float32)
-    ratio_s[sel] = protected_ratio(shadow, receiver_opacity(light, nrm), real_vis)
+    ratio_s[sel] = protected_ratio(shadow, strength[sel], all_vis[sel])
     ratio = upsample_ratio(ratio_s, sel, maps.stride, inp.camera.shape[:2])
 
     vpts, vnrm = gb.position[covered], gb.normal[covered]
