@@ -141,7 +141,8 @@ def write_report(results_dir: Path, md: Path, png: Path) -> None:
     for run in runs:
         lines += [f"## {run['device_name']} ({run['device']})", "",
                   f"Command: `{run['command']}`; {run['date']}; Warp {run['warp']}, Open3D {run['open3d']}; "
-                  f"{run['size']}, {run['frames']} frames per recording, {run['spp']} spp.", "",
+                  f"{run['size']}, {run['frames']} frames per recording, {run['spp']} spp."
+                  + (f" Note: {run['note']}." if run.get("note") else ""), "",
                   "| scene | renderer | ms/frame | RMSE | si-RMSE | flicker |", "|---|---|---:|---:|---:|---:|"]
         for r in run["rows"]:
             ms = "-" if r["ms_mean"] is None else f"{r['ms_mean']:.1f}"
