@@ -161,15 +161,14 @@ def _prior_scale(F: np.ndarray, prior: np.ndarray, G: np.ndarray) -> np.ndarray 
 def _albedo_step(A, I, w, labels, m, F, cfg: SolverConfig, prior=None, G=None):
     """Closed-form region albedos given F, scale-fixed by the prior (when it has an observed component)
     or else by cfg's albedo_reference rule and reference_albedo; returns (rho (m, 3), per-channel scale to move into F)."""
-    S = A @ F.T
-    num = np.zeros((m, 3))
-    den = np.zeros((m, 3))
     sel = labels >= 0
-    np.add.at(num, labels[sel], (w[sel, None] * I[sel] * S[sel]))
-    np.add.at(den, labels[sel], (w[sel, None] * S[sel] * S[sel]))
+    lab, ws, S = labels[sel], w[sel, None], A[sel] @ F.T
+    num = np.stack([np.bincount(lab, weights=c, minlength=m) for c in (ws * I[sel] * S).T], axis=1)
+    den = np.stack([np.bincount(lab, weights=c, minlength=m) for c in (ws * S * S).T], axis=1)
     rho = np.where((den > 0) & (num > 0), num / np.maximum(den, 1e-300), np.nan)
-    fill = np.nanmedian(rho, axis=0) if np.isfinite(rho).any() else np.ones(3)
-    rho = np.where(np.isfinite(rho), rho, np.where(np.isfinite(fill), fill, 1.0))
+    ok = np.isfinite(rho)
+    fill = np.array([np.median(rho[ok[:, c], c]) if ok[:, c].any() else 1.0 for c in range(3)])
+    rho = np.where(ok, rho, fill)
     scale = _prior_scale(F, prior, G) if prior is not None and prior.any() else None
     if scale is None:
         scale = alb.reference_scale(rho, np.bincount(labels[sel], weights=w[sel], minlength=m),
