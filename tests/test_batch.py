@@ -143,3 +143,21 @@ def test_ray_batch_retries_failure_once(three_sessions, tmp_path, capsys):
         ray.shutdown()
     by_name = check_three_session_run(tmp_path, report, capsys)
     assert by_name["broken"]["attempts"] == 2 and by_name["a"]["attempts"] == 1
+
+
+def test_local_workers_share_the_cores(monkeypatch):
+    """Each local worker gets its share of the cores for split CPU launches (N workers x all cores would
+    oversubscribe them), unless PHOTOREG_CPU_THREADS is already set."""
+    import os
+
+    from photoreg.batch import local
+    from photoreg.kernels.launch import cpu_threads
+
+    monkeypatch.setattr(os, "cpu_count", lambda: 8)
+    assert [local.cpu_share(w) for w in (1, 2, 3, 8, 16)] == [8, 4, 2, 1, 1]
+    monkeypatch.delenv("PHOTOREG_CPU_THREADS", raising=False)
+    local._init_worker(None, 3)
+    assert os.environ["PHOTOREG_CPU_THREADS"] == "3" and cpu_threads() == 3
+    monkeypatch.setenv("PHOTOREG_CPU_THREADS", "5")
+    local._init_worker(None, 3)
+    assert cpu_threads() == 5

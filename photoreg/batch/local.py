@@ -15,9 +15,18 @@ from .runner import BatchProgress, SessionTask, failed_result, run_one
 _progress_queue = None  # set in each worker process by _init_worker
 
 
-def _init_worker(q) -> None:
+def _init_worker(q, cpu_threads: int) -> None:
+    """Worker start-up: the progress queue, and its share of the cores for split CPU kernel launches
+    (photoreg.kernels.launch) unless PHOTOREG_CPU_THREADS is set: N workers each using every core would
+    oversubscribe them N-fold."""
     global _progress_queue
     _progress_queue = q
+    os.environ.setdefault("PHOTOREG_CPU_THREADS", str(cpu_threads))
+
+
+def cpu_share(workers: int) -> int:
+    """CPU threads per worker: the cores split evenly, at least one."""
+    return max(1, (os.cpu_count() or 1) // max(workers, 1))
 
 
 def _run(task: SessionTask) -> dict:
@@ -59,7 +68,8 @@ def run_local(tasks: list[SessionTask], progress: BatchProgress, workers: int | 
     ctx = mp.get_context("spawn")
     q = ctx.Queue()
     results: dict[int, dict] = {}
-    with ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_init_worker, initargs=(q,)) as pool:
+    with ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_init_worker,
+                             initargs=(q, cpu_share(workers))) as pool:
         pending = {pool.submit(_run, t): t for t in tasks}
         while pending:
             finished, _ = wait(pending, timeout=0.25, return_when=FIRST_COMPLETED)

@@ -59,7 +59,9 @@ def _gather(ray, tasks: list[SessionTask], progress: BatchProgress, q) -> list[d
     remote = ray.remote(max_retries=1)(run_one)  # max_retries: Ray re-runs a task whose worker process died
 
     def submit(t: SessionTask):
-        resources = {"num_gpus": 1} if t.session.device == "cuda" else {"num_cpus": 1}
+        # a CPU task holds one Ray CPU: its split kernel launches (photoreg.kernels.launch) use one thread
+        resources = {"num_gpus": 1} if t.session.device == "cuda" else \
+            {"num_cpus": 1, "runtime_env": {"env_vars": {"PHOTOREG_CPU_THREADS": "1"}}}
         return remote.options(**resources).remote(t, q)
 
     pending = {submit(t): (t, 1) for t in tasks}
