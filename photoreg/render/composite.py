@@ -47,7 +47,6 @@ class RenderInput:
     light_rays: int = 0             # rays over the dominant light's disc (0: the light stays in F's SH)
     scene: VirtualScene | None = None  # the placed objects (renderers that work per object need it)
 
-
     @cached_property
     def light(self) -> ParametricLight:
         """The frame's parametric light (one per frame, shared by the renderers), directed along F's band 1:
