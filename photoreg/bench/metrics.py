@@ -128,6 +128,13 @@ def flicker(sequence, size: int = 64) -> float:
     return float(np.mean(terms)) if terms else 0.0
 
 
+def changed_region(composites, cameras, tolerance: float = 1e-3) -> np.ndarray:
+    """Pixels (bool HxW) where any composite differs from its camera frame by more than `tolerance` in
+    some channel: where an insertion (object or shadow) changed the frame."""
+    return np.any([np.abs(np.asarray(c) - np.asarray(k)).max(axis=-1) > tolerance
+                   for c, k in zip(composites, cameras)], axis=0)
+
+
 def image_flicker(images, region: np.ndarray) -> float:
     """Flicker E of an image sequence itself: mean over `region` pixels (bool HxW), channels and
     consecutive pairs of exp(3 |I_t - I_(t-1)|) - 1, on linear images as they are (composites share the

@@ -15,38 +15,17 @@ ms per frame against si-RMSE) is rebuilt from every such file, so CPU and GPU ru
 from __future__ import annotations
 
 import json
-import shutil
 import sys
 import time
 from pathlib import Path
 
-import cv2
 import numpy as np
 
 from ..io.atomic import write_json, write_text
 from . import metrics
+from .scenes import SCENE_CACHE, cached_scene
 
 RESULTS_GLOB = "renderers_*.json"
-
-
-def scene_recordings(kind: str, cache: Path, size: tuple[int, int], frames: int, spp: int) -> tuple[Path, Path]:
-    """(orbit recording with inserts, static recording) of `kind`, generated once into `cache`."""
-    from ..synth.generate import SynthConfig, generate
-
-    w, h = size
-    paths = []
-    for camera, inserts in (("orbit", "auto"), ("static", "none")):
-        out = cache / f"{kind}_{camera}_{w}x{h}_{frames}f_{spp}spp"
-        if not (out / "rgb.txt").is_file():
-            print(f"bench renderers: generating {out.name} (once)", file=sys.stderr, flush=True)
-            tmp = out.with_name(out.name + ".partial")
-            if tmp.exists():
-                shutil.rmtree(tmp)
-            generate(SynthConfig(scene=kind, out=str(tmp), frames=frames, width=w, height=h, spp=spp,
-                                 camera=camera, insert_frames=inserts), log=None)
-            tmp.rename(out)
-        paths.append(out)
-    return paths[0], paths[1]
 
 
 def run_all_renderers(session, frames: list[int], renderers: dict) -> dict[str, dict[int, tuple[np.ndarray, float]]]:
@@ -92,39 +71,29 @@ def _session_for(recording: Path, objects_from: Path, device: str):
 
 def bench_scene(kind: str, orbit: Path, static: Path, device: str, renderers: dict) -> list[dict]:
     """Rows (one per renderer, plus the no-shadow baseline) of one scene kind."""
-    from ..io.images import read_exr, read_rgb, srgb_to_linear
-    from .score import color_files
+    from ..io.images import read_rgb, srgb_to_linear
+    from .score import color_files, insert_truth
 
-    inserts = sorted(int(p.stem) for p in (orbit / "insert").glob("*.exr") if p.stem.isdigit())
-    runs = run_all_renderers(_session_for(orbit, orbit, device), list(range(max(inserts) + 1)), renderers)
-    n_static = len(color_files(static))
-    still = run_all_renderers(_session_for(static, orbit, device), list(range(n_static)), renderers)
+    truths = insert_truth(orbit)
+    runs = run_all_renderers(_session_for(orbit, orbit, device), list(range(truths[-1].frame + 1)), renderers)
     cams = [srgb_to_linear(read_rgb(p)) for p in color_files(static)]
-    region = np.any([np.abs(c[0] - cams[i]).max(axis=-1) > 1e-3
-                     for r in still.values() for i, c in r.items()], axis=0)
+    still = run_all_renderers(_session_for(static, orbit, device), list(range(len(cams))), renderers)
+    region = metrics.changed_region([c for r in still.values() for c, _ in r.values()],
+                                    [cams[i] for r in still.values() for i in r])
+
+    def row(name: str, errs: list[dict], ms, flicker: float) -> dict:
+        return {"scene": kind, "renderer": name, "ms_mean": ms, "rmse": float(np.mean([e["rmse"] for e in errs])),
+                "si_rmse": float(np.mean([e["si_rmse"] for e in errs])), "flicker": flicker,
+                "n_inserts": len(truths)}
+
     rows = []
-    rgb = color_files(orbit)
-    base = []
     for name, per_frame in runs.items():
-        errs = []
-        for i in inserts:
-            gt = read_exr(orbit / "insert" / f"{i:06d}.exr")
-            mask = cv2.imread(str(orbit / "insert_mask" / f"{i:06d}.png"), cv2.IMREAD_GRAYSCALE)
-            roi = metrics.roi_mask(mask)
-            errs.append(metrics.composite_metrics(per_frame[i][0], gt, roi))
-            if len(base) < len(inserts):
-                camera = srgb_to_linear(read_rgb(rgb[i]))
-                base.append(metrics.composite_metrics(metrics.no_shadow_baseline(camera, gt, mask), gt, roi))
+        errs = [metrics.composite_metrics(per_frame[t.frame][0], t.gt, t.roi) for t in truths]
         ms = [m for _, m in per_frame.values()] + [m for _, m in still[name].values()]
-        rows.append({"scene": kind, "renderer": name, "ms_mean": float(np.mean(ms)),
-                     "rmse": float(np.mean([e["rmse"] for e in errs])),
-                     "si_rmse": float(np.mean([e["si_rmse"] for e in errs])),
-                     "flicker": metrics.image_flicker([still[name][i][0] for i in sorted(still[name])], region),
-                     "n_inserts": len(inserts)})
-    rows.append({"scene": kind, "renderer": "baseline: path-traced object, no shadow", "ms_mean": None,
-                 "rmse": float(np.mean([b["rmse"] for b in base])),
-                 "si_rmse": float(np.mean([b["si_rmse"] for b in base])),
-                 "flicker": metrics.image_flicker(cams, region), "n_inserts": len(inserts)})
+        rows.append(row(name, errs, float(np.mean(ms)),
+                        metrics.image_flicker([still[name][i][0] for i in sorted(still[name])], region)))
+    rows.append(row("baseline: path-traced object, no shadow", [t.baseline() for t in truths], None,
+                    metrics.image_flicker(cams, region)))
     return rows
 
 
@@ -182,21 +151,24 @@ def renderers_command(args) -> int:
     import warp as wp
 
     from ..device import resolve_device
-    from ..render.registry import RENDERERS
+    from ..render.registry import RENDERERS, get_renderer
+    from ..synth.generate import parse_size
     from .speed import device_name
 
     names = args.renderers.split(",") if args.renderers else sorted(RENDERERS)
-    unknown = [n for n in names if n not in RENDERERS]
-    if unknown:
-        raise ValueError(f"--renderers: unknown {unknown} (registered: {', '.join(sorted(RENDERERS))})")
-    w, h = (int(x) for x in args.size.lower().split("x"))
-    cache = Path(args.synth_dir or Path.home() / ".cache" / "photoreg" / "bench_scenes")
-    cache.mkdir(parents=True, exist_ok=True)
+    renderers = {n: get_renderer(n) for n in names}      # an unknown name is an error listing the registered
+    w, h = parse_size(args.size)
+    cache = Path(args.synth_dir or SCENE_CACHE)
+
+    def log(msg: str) -> None:
+        print(f"bench renderers: {msg}", file=sys.stderr, flush=True)
+
     device = resolve_device(args.device or "auto")
     rows = []
     for kind in args.scenes.split(","):
-        orbit, static = scene_recordings(kind, cache, (w, h), args.frames, args.spp)
-        rows += bench_scene(kind, orbit, static, device, {n: RENDERERS[n] for n in names})
+        orbit = cached_scene(cache, kind, w, h, args.frames, args.spp, inserts="auto", log=log)
+        static = cached_scene(cache, kind, w, h, args.frames, args.spp, camera="static", log=log)
+        rows += bench_scene(kind, orbit, static, device, renderers)
     results = Path(args.results_dir)
     run = {"device": device, "device_name": device_name(device), "warp": wp.__version__, "open3d": o3d.__version__,
            "command": "photoreg " + " ".join(sys.argv[1:]), "date": datetime.date.today().isoformat(),

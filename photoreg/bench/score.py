@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import json
 import math
+from dataclasses import dataclass
 from pathlib import Path
 
 import cv2
@@ -157,41 +158,64 @@ def _read_mask(path: Path) -> np.ndarray:
     return (img.max(axis=2) if img.ndim == 3 else img) > 0
 
 
-def score_composites(out: str | Path, recording: str | Path) -> dict:
-    """Composite and no-shadow-baseline errors over each insert frame's ROI."""
-    out, recording = Path(out), Path(recording)
+@dataclass
+class InsertTruth:
+    """One insert frame's ground truth: the path-traced composite, the object mask and its ROI, and the
+    camera frame (linear) it was inserted into."""
+
+    frame: int
+    gt: np.ndarray
+    mask: np.ndarray
+    roi: np.ndarray
+    camera: np.ndarray
+
+    def baseline(self, with_flip: bool = False) -> dict[str, float]:
+        """Errors of the 'no shadow' baseline: the path-traced object pasted, surroundings untouched."""
+        return metrics.composite_metrics(metrics.no_shadow_baseline(self.camera, self.gt, self.mask), self.gt,
+                                         self.roi, with_flip)
+
+
+def insert_truth(recording: str | Path) -> list[InsertTruth]:
+    """Every insert frame of a generated recording (insert/NNNNNN.exr, insert_mask/NNNNNN.png)."""
+    recording = Path(recording)
     inserts = sorted(p for p in (recording / "insert").glob("*.exr") if p.stem.isdigit())
     if not inserts:
         raise FileNotFoundError(f"{recording / 'insert'}: no insert renders (NNNNNN.exr) to score composites against")
     rgb = color_files(recording)
-    with_flip = metrics.flip_available()
-    notes = [] if with_flip else ["FLIP skipped: flip_evaluator is not installed"]
-    per_frame, missing = [], []
+    out = []
     for p in inserts:
         i = int(p.stem)
-        gt = read_exr(p)
-        mask = _read_mask(recording / "insert_mask" / f"{p.stem}.png")
         if i >= len(rgb):
             raise FileNotFoundError(f"{p}: frame {i} is not a frame of the recording {recording} "
                                     f"({len(rgb)} frames)")
-        camera = srgb_to_linear(read_rgb(rgb[i]))
-        roi = metrics.roi_mask(mask)
-        base = metrics.composite_metrics(metrics.no_shadow_baseline(camera, gt, mask), gt, roi, with_flip)
-        row = {"frame": i, **{f"baseline_{k}": v for k, v in base.items()}}
-        lin, png = out / "composite_linear" / f"{p.stem}.exr", out / "composite" / f"{p.stem}.png"
+        mask = _read_mask(recording / "insert_mask" / f"{p.stem}.png")
+        out.append(InsertTruth(i, read_exr(p), mask, metrics.roi_mask(mask), srgb_to_linear(read_rgb(rgb[i]))))
+    return out
+
+
+def score_composites(out: str | Path, recording: str | Path) -> dict:
+    """Composite and no-shadow-baseline errors over each insert frame's ROI."""
+    out = Path(out)
+    truths = insert_truth(recording)
+    with_flip = metrics.flip_available()
+    notes = [] if with_flip else ["FLIP skipped: flip_evaluator is not installed"]
+    per_frame, missing = [], []
+    for t in truths:
+        row = {"frame": t.frame, **{f"baseline_{k}": v for k, v in t.baseline(with_flip).items()}}
+        lin, png = out / "composite_linear" / f"{t.frame:06d}.exr", out / "composite" / f"{t.frame:06d}.png"
         if lin.is_file():
             est = read_exr(lin)
         elif png.is_file():
             est = srgb_to_linear(read_rgb(png))
         else:
             est = None
-            missing.append(i)
+            missing.append(t.frame)
         if est is not None:
-            row.update(metrics.composite_metrics(est, gt, roi, with_flip))
+            row.update(metrics.composite_metrics(est, t.gt, t.roi, with_flip))
         per_frame.append(row)
     if missing:
         notes.append(f"no composite for insert frame(s) {missing}: only the baseline is scored there")
-    return {"n_inserts": len(inserts), "n_scored": len(inserts) - len(missing), "roi_dilation_px": metrics.ROI_DILATION_PX,
+    return {"n_inserts": len(truths), "n_scored": len(truths) - len(missing), "roi_dilation_px": metrics.ROI_DILATION_PX,
             "flip": with_flip,
             "metrics": {k: metrics.summarize(r.get(k) for r in per_frame)
                         for k in COMPOSITE_METRICS if with_flip or "flip" not in k},
@@ -208,7 +232,7 @@ def composite_flicker(out: str | Path, recording: str | Path) -> dict | None:
     rgb = color_files(recording)
     comps = [read_exr(p) for p in files]
     cams = [srgb_to_linear(read_rgb(rgb[int(p.stem)])) for p in files]
-    region = np.any([np.abs(c - k).max(axis=-1) > 1e-3 for c, k in zip(comps, cams)], axis=0)
+    region = metrics.changed_region(comps, cams)
     return {"frames": [int(p.stem) for p in files], "pixels": int(region.sum()),
             "composite": metrics.image_flicker(comps, region), "camera": metrics.image_flicker(cams, region)}
 

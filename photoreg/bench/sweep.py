@@ -26,13 +26,13 @@ import numpy as np
 from ..config import Session, validate
 from ..io.atomic import atomic_path, write_text
 from . import metrics
+from .scenes import SCENE_CACHE, cached_scene
 
 DEFAULT_SCENES = ("tabletop", "corner")
 STAGES = ("preprocess", "pose", "fuse", "raycast", "sample", "transfer", "solve", "total")
 KEY = ("device", "device_name", "threads", "size", "stride", "rays", "bands", "voxel_size")
 COLUMNS = (*KEY, "frames_per_s", *(f"ms_{s}" for s in STAGES), "direction_deg", "si_rmse_upper", "si_rmse_sphere",
            "scenes", "frames", "frames_timed", "warp", "open3d", "fusion_on", "date")
-SCENE_CACHE = Path.home() / ".cache" / "photoreg" / "bench_scenes"
 
 
 @dataclass(frozen=True)
@@ -53,28 +53,6 @@ def grid(strides, rays, bands, voxel_sizes) -> list[Setting]:
     """Every combination, voxel size outermost (the order the sweep fuses in)."""
     return [Setting(int(s), int(r), int(b), float(v))
             for v in voxel_sizes for s in strides for r in rays for b in bands]
-
-
-def scene_folder(cache: Path, kind: str, width: int, height: int, frames: int, spp: int) -> Path:
-    return Path(cache) / f"{kind}-{width}x{height}-{frames}f-{spp}spp"
-
-
-def ensure_scenes(kinds, cache: Path, width: int, height: int, frames: int, spp: int = 64,
-                  log=print) -> list[Path]:
-    """The generated recording of each scene kind in `cache`, rendered with photoreg.synth when missing."""
-    from ..synth.generate import SynthConfig, generate
-
-    out = []
-    for kind in kinds:
-        folder = scene_folder(cache, kind, width, height, frames, spp)
-        if not (folder / "lighting_gt.json").is_file():
-            if folder.exists() and any(folder.iterdir()):
-                raise FileExistsError(f"{folder}: incomplete scene cache (no lighting_gt.json); remove it")
-            log(f"generating {kind} ({width}x{height}, {frames} frames) into {folder}")
-            generate(SynthConfig(scene=kind, out=str(folder), frames=frames, width=width, height=height, spp=spp,
-                                 insert_frames="none"), log=None)
-        out.append(folder)
-    return out
 
 
 def pareto_front(speed, error) -> np.ndarray:
@@ -309,9 +287,8 @@ def sweep_command(args) -> int:
         recordings = [Path(p) for p in args.recordings]
     else:
         width, height = parse_size(args.size)
-        recordings = ensure_scenes([k.strip() for k in args.scenes.split(",") if k.strip()],
-                                   Path(args.synth_dir or SCENE_CACHE), width, height, args.frames, args.spp,
-                                   log=log)
+        recordings = [cached_scene(Path(args.synth_dir or SCENE_CACHE), k.strip(), width, height, args.frames,
+                                   args.spp, log=log) for k in args.scenes.split(",") if k.strip()]
     log(f"{len(settings)} settings x {len(recordings)} recordings x {args.frames} frames")
     rows = run_sweep(recordings, settings, device=args.device or "auto", frames=args.frames, warmup=args.warmup,
                      progress=log)

@@ -60,6 +60,13 @@ class ParametricLight:
         """E_lobe (3,) on a receiver facing the light: c g_1(angle)."""
         return self.colour * band_attenuation(self.angle, 2)[1]
 
+    def irradiance(self, normals: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(E_lobe max(n.d, 0), E_residual(n) clamped at 0), each (N, 3), at unit normals (N, 3)."""
+        n = np.asarray(normals, dtype=np.float64).reshape(-1, 3)
+        lobe = np.maximum(n @ self.direction, 0.0)[:, None] * self.lobe_irradiance()[None]
+        amb = np.maximum(sh.irradiance(self.residual, n), 0.0) if len(n) else np.zeros((0, 3))
+        return lobe, amb
+
 
 def band_attenuation(angle: float, bands: int) -> np.ndarray:
     """g_l (bands,) of a uniform disc of angular radius `angle`, normalised so g_0 = 1."""
@@ -178,10 +185,7 @@ def parametric_light(F: np.ndarray, direction: np.ndarray | None = None) -> Para
 def receiver_opacity(light: ParametricLight, normals: np.ndarray) -> np.ndarray:
     """Lobe share (N, 3) of the irradiance at receivers with unit normals (N, 3): the strength a full
     shadow of the lobe has there (E_lobe max(n.d, 0) / (E_lobe max(n.d, 0) + E_residual(n)), in [0, 1])."""
-    n = np.asarray(normals, dtype=np.float64).reshape(-1, 3)
-    cos = np.maximum(n @ light.direction, 0.0)[:, None]
-    lobe = cos * light.lobe_irradiance()[None]
-    amb = np.maximum(sh.irradiance(light.residual, n), 0.0) if len(n) else np.zeros((0, 3))
+    lobe, amb = light.irradiance(normals)
     total = lobe + amb
     return np.clip(np.where(total > 0, lobe / np.maximum(total, 1e-300), 0.0), 0.0, 1.0)
 
@@ -191,11 +195,7 @@ def cone_directions(direction: np.ndarray, angle: float, n: int) -> np.ndarray:
     `direction` (a Fibonacci spiral on the cap): the light's disc, for soft-shadow visibility rays."""
     if n < 1:
         raise ValueError(f"cone_directions: n must be >= 1, got {n}")
-    i = np.arange(n, dtype=np.float64) + 0.5
-    z = 1.0 - (1.0 - math.cos(angle)) * i / n
-    phi = math.pi * (3.0 - math.sqrt(5.0)) * i
-    r = np.sqrt(np.maximum(0.0, 1.0 - z * z))
-    local = np.stack([r * np.cos(phi), r * np.sin(phi), z], axis=1)
+    local = sh.fibonacci_cap(n, math.cos(angle))
     d = np.asarray(direction, dtype=np.float64) / max(float(np.linalg.norm(direction)), 1e-12)
     return local @ np.stack([*light_basis(d), d])
 

@@ -97,13 +97,19 @@ def project(dirs: np.ndarray, values: np.ndarray, weights: np.ndarray, bands: in
     return ((sh_basis(dirs, bands) * np.asarray(weights, dtype=np.float64)[:, None]).T @ v).T
 
 
-def fibonacci_sphere(n: int, rotation_seed: int | None = None) -> np.ndarray:
-    """n quasi-uniform unit directions (spherical Fibonacci), optionally randomly rotated."""
+def fibonacci_cap(n: int, cos_min: float) -> np.ndarray:
+    """n unit directions (n, 3) spread uniformly in solid angle over the cap z >= cos_min around +z
+    (a spherical Fibonacci spiral; cos_min = -1 is the whole sphere)."""
     i = np.arange(n, dtype=np.float64) + 0.5
-    z = 1.0 - 2.0 * i / n
+    z = 1.0 - (1.0 - cos_min) * i / n
     phi = math.pi * (3.0 - math.sqrt(5.0)) * i
     r = np.sqrt(np.maximum(0.0, 1.0 - z * z))
-    d = np.stack([r * np.cos(phi), r * np.sin(phi), z], axis=1)
+    return np.stack([r * np.cos(phi), r * np.sin(phi), z], axis=1)
+
+
+def fibonacci_sphere(n: int, rotation_seed: int | None = None) -> np.ndarray:
+    """n quasi-uniform unit directions (spherical Fibonacci), optionally randomly rotated."""
+    d = fibonacci_cap(n, -1.0)
     if rotation_seed is not None:
         from scipy.spatial.transform import Rotation
         d = d @ Rotation.random(random_state=rotation_seed).as_matrix().T

@@ -96,6 +96,12 @@ def shadow_ratio(s_tr: np.ndarray, s_trv: np.ndarray) -> np.ndarray:
     return np.clip(1.0 + (s_trv - s_tr) / np.maximum(s_tr, eps), 0.0, 1.0).astype(np.float32)
 
 
+def at_stride(image: np.ndarray, maps: SurfaceMaps) -> np.ndarray:
+    """A full-resolution image sampled at the maps' pixels (r * stride, c * stride): shape of maps.depth."""
+    h, w = maps.depth.shape
+    return image[::maps.stride, ::maps.stride][:h, :w]
+
+
 def near_objects(maps: SurfaceMaps, bounds: np.ndarray, reach: float) -> np.ndarray:
     """Stride pixels whose real surface lies within `reach` of the objects' box: the only ones a
     virtual object can shadow (rays end at ray_length)."""

@@ -23,6 +23,7 @@ import numpy as np
 from photoreg.kernels.raycast import SurfaceMaps
 from photoreg.kernels.shadowmap import ShadowMap
 from photoreg.lighting.parametric import ParametricLight
+from photoreg.render.composite import at_stride
 from photoreg.render.gbuffer import GBuffer
 
 CHANNELS = ("view_depth", "normal_x", "normal_y", "normal_z", "emitter_depth", "receiver_depth", "cosine_size")
@@ -56,15 +57,15 @@ def receivers(maps: SurfaceMaps, gbuffer: GBuffer) -> tuple[np.ndarray, np.ndarr
     """Front-most receiver per stride pixel: depth (h, w), position (h, w, 3), normal (h, w, 3), valid, virtual."""
     s = maps.stride
     h, w = maps.depth.shape
-    cov, gdepth = gbuffer.coverage[::s, ::s][:h, :w], gbuffer.depth[::s, ::s][:h, :w]
+    cov, gdepth = at_stride(gbuffer.coverage, maps), at_stride(gbuffer.depth, maps)
     if cov.shape != (h, w):
         raise ValueError(f"shadow_buffers: G-buffer {gbuffer.coverage.shape} does not match maps {maps.depth.shape} "
                          f"at stride {s}")
     virtual = (cov >= VIRTUAL_COVERAGE) & (gdepth > 0)
     valid = virtual | maps.valid
     depth = np.where(virtual, gdepth, maps.depth).astype(np.float32)
-    pos = np.where(virtual[..., None], gbuffer.position[::s, ::s][:h, :w], maps.vertex).astype(np.float32)
-    nrm = np.where(virtual[..., None], gbuffer.normal[::s, ::s][:h, :w], maps.normal).astype(np.float32)
+    pos = np.where(virtual[..., None], at_stride(gbuffer.position, maps), maps.vertex).astype(np.float32)
+    nrm = np.where(virtual[..., None], at_stride(gbuffer.normal, maps), maps.normal).astype(np.float32)
     depth[~valid], pos[~valid], nrm[~valid] = 0.0, 0.0, 0.0
     return depth, pos, nrm, valid, virtual
 

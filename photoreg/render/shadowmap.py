@@ -21,10 +21,9 @@ import numpy as np
 
 from photoreg.kernels.shadowmap import ShadowMap, depth_map, real_light_visibility, shadow_lookup
 from photoreg.lighting import albedo as alb
-from photoreg.lighting import sh
 from photoreg.lighting.solver import SolverConfig
 from photoreg.lighting.parametric import ParametricLight, light_basis, receiver_opacity
-from photoreg.render.composite import Layers, RenderInput, upsample_ratio
+from photoreg.render.composite import Layers, RenderInput, at_stride, upsample_ratio
 
 RESOLUTION = 512        # shadow-map texels per side
 PAD_TEXELS = 2          # empty border around the objects' footprint
@@ -77,8 +76,7 @@ def measured_opacity(colour: np.ndarray, normals: np.ndarray, light: ParametricL
     facing = (normals @ light.direction) > 0.3
     if np.count_nonzero(facing & (real_vis < 0.1)) < min_count:
         return opacity, []
-    cos = np.maximum(normals @ light.direction, 0.0)[:, None]
-    expected = np.maximum(sh.irradiance(light.residual, normals), 0.0) + cos * light.lobe_irradiance()[None]
+    expected = sum(light.irradiance(normals))
     reflect = colour / np.maximum(expected, 1e-12)                       # albedo-like, per channel
     labels = alb.cluster(alb.colour_features(colour, with_intensity=False), SolverConfig.chroma_bandwidth,
                          min_count)
@@ -98,9 +96,8 @@ def measured_opacity(colour: np.ndarray, normals: np.ndarray, light: ParametricL
 
 def _virtual_colour(inp: RenderInput, light: ParametricLight, lobe_vis: np.ndarray, covered: np.ndarray) -> np.ndarray:
     """albedo * gain / pi * (E_residual(n) + E_lobe max(n.d, 0) lobe_vis) at covered pixels, zero elsewhere."""
-    n = inp.gbuffer.normal[covered]
-    e = np.maximum(sh.irradiance(light.residual, n), 0.0) if len(n) else np.zeros((0, 3))
-    e = e + np.maximum(n @ light.direction, 0.0)[:, None] * lobe_vis[:, None] * light.lobe_irradiance()[None]
+    lobe, amb = light.irradiance(inp.gbuffer.normal[covered])
+    e = amb + lobe * lobe_vis[:, None]
     colour = np.zeros(inp.camera.shape, np.float32)
     colour[covered] = inp.gbuffer.albedo[covered] * e / math.pi * inp.gain
     return colour
@@ -129,10 +126,8 @@ def render_shadowmap(inp: RenderInput) -> Layers:
     all_vis = np.zeros(valid.shape, np.float32)
     all_vis[valid] = real_light_visibility(inp.grid, maps.vertex[valid], maps.normal[valid], smap.d, smap.u, smap.v,
                                            tan_a, inp.offset, inp.ray_length, samples=REAL_SAMPLES)
-    s = maps.stride
-    cam = inp.camera[::s, ::s][: valid.shape[0], : valid.shape[1]]
     strength = np.zeros(valid.shape + (3,), np.float32)
-    strength[valid], measured = measured_opacity(cam[valid], maps.normal[valid], light, all_vis[valid])
+    strength[valid], measured = measured_opacity(at_stride(inp.camera, maps)[valid], maps.normal[valid], light, all_vis[valid])
     notes += measured
     sel = valid & in_footprint(smap, maps.vertex, RESOLUTION, MAX_RADIUS)
     pts, nrm = maps.vertex[sel], maps.normal[sel]

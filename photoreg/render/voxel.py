@@ -7,7 +7,7 @@ import numpy as np
 from photoreg.kernels.transfer import radiance_transfer
 from photoreg.lighting import sh
 from photoreg.lighting.parametric import ParametricLight, cone_directions
-from photoreg.render.composite import (Layers, RenderInput, bounce, near_objects, shade, shadow_ratio,
+from photoreg.render.composite import (Layers, RenderInput, at_stride, bounce, near_objects, shade, shadow_ratio,
                                       upsample_ratio)
 
 
@@ -20,9 +20,7 @@ def _virtual_colour(inp: RenderInput, shading: np.ndarray, covered: np.ndarray) 
 
 def real_radiance(inp: RenderInput, near: np.ndarray) -> np.ndarray:
     """Mean camera radiance (3,) of the real surface near the objects: what a blocked ray sees (bounce)."""
-    s = inp.maps.stride
-    cam = inp.camera[::s, ::s][: near.shape[0], : near.shape[1]]
-    return cam[near].mean(axis=0) if near.any() else np.zeros(3, np.float32)
+    return at_stride(inp.camera, inp.maps)[near].mean(axis=0) if near.any() else np.zeros(3, np.float32)
 
 
 def _disc_shading(inp: RenderInput, light: ParametricLight | None, points: np.ndarray,

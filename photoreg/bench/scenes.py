@@ -1,0 +1,35 @@
+"""Generated benchmark recordings, made once with photoreg.synth into a cache folder and reused by
+`photoreg bench sweep` and `photoreg bench renderers`."""
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+from typing import Callable
+
+SCENE_CACHE = Path.home() / ".cache" / "photoreg" / "bench_scenes"
+
+
+def cached_scene(cache: Path, kind: str, width: int, height: int, frames: int, spp: int, camera: str = "orbit",
+                 inserts: str = "none", log: Callable[[str], None] | None = None) -> Path:
+    """The recording of scene `kind` with these settings in `cache` (folder named after them), rendered
+    into a .partial folder and renamed when missing, so an interrupted run leaves no half scene behind."""
+    from ..synth.generate import SynthConfig, generate
+
+    name = f"{kind}-{width}x{height}-{frames}f-{spp}spp"
+    name += "" if camera == "orbit" else f"-{camera}"
+    name += "" if inserts == "none" else "-inserts"
+    folder = Path(cache) / name
+    if not (folder / "lighting_gt.json").is_file():
+        if folder.exists() and any(folder.iterdir()):
+            raise FileExistsError(f"{folder}: incomplete scene cache (no lighting_gt.json); remove it")
+        if log:
+            log(f"generating {kind} ({width}x{height}, {frames} frames, {camera} camera) into {folder}")
+        tmp = folder.with_name(folder.name + ".partial")
+        if tmp.exists():
+            shutil.rmtree(tmp)
+        generate(SynthConfig(scene=kind, out=str(tmp), frames=frames, width=width, height=height, spp=spp,
+                             camera=camera, insert_frames=inserts), log=None)
+        if folder.exists():
+            folder.rmdir()
+        tmp.rename(folder)
+    return folder
