@@ -15,12 +15,13 @@ import numpy as np
 from .config import Session
 from .device import init_warp, resolve_device
 from .kernels.raycast import raycast_surface
-from .kernels.transfer import make_direction_set, radiance_transfer
+from .kernels.transfer import make_direction_set, radiance_transfer, visibility
 from .lighting import sh
 from .lighting.exposure import ExposureTracker
-from .lighting.robust import solve
+from .lighting.robust import Term, bounce_term, solve
 from .lighting.samples import agreement
 from .lighting.solver import SolverConfig
+from .lighting.sun import SunConfig, SunSearch, disc_rays, sun_term
 from .lighting.temporal import FilterConfig, LightingFilter
 from .preprocess import Prepared, prepare
 from .recon.fusion import FusionConfig, TSDFVolume
@@ -51,6 +52,12 @@ class Pipeline:
             from .recon.tracking import Tracker
             self.tracker = Tracker(self.volume, intrinsics, rc)
         self.prev_F: np.ndarray | None = None
+        # Extra terms (the bounce, the dominant light) only with fixed bands: order selection compares SH models.
+        fixed = self.solver_cfg.select == "fixed"
+        self.bounce = lc.bounce and fixed
+        self.sun = (SunSearch(SunConfig(candidates=lc.sun_candidates, samples=lc.sun_samples,
+                                         min_gain=lc.sun_min_gain, rays=lc.sun_rays))
+                    if lc.sun and fixed else None)
         self.render = None  # virtual objects (issue 5): RenderStage, built before any frame
         if session.objects:
             from .render.stage import RenderStage
@@ -62,7 +69,7 @@ class Pipeline:
         yield
         if self.device != "cpu":
             self._wp.synchronize_device(self.device)
-        timings[stage] = (time.perf_counter() - t0) * 1000.0
+        timings[stage] = timings.get(stage, 0.0) + (time.perf_counter() - t0) * 1000.0  # a stage may come back
 
     def _pose(self, frame: Frame, prep: Prepared) -> tuple[np.ndarray | None, list[str]]:
         if self.tracker is not None:
@@ -87,6 +94,28 @@ class Pipeline:
                                                lc.max_normal_angle,
                                                lc.max_depth_gap_voxels * self.session.reconstruction.voxel_size)
         return radiance[keep], maps.vertex[keep], maps.normal[keep]
+
+    def _with_sun(self, grid, radiance, transfer, points, normals, visible, sol, previous, terms: list[Term]):
+        """(sun, solution): the frame's dominant light (photoreg.lighting.sun) and the joint solve with it, or
+        (None, sol) when the solution `sol` without it (with `terms`) needs none."""
+        lc, rc = self.session.lighting, self.session.reconstruction
+        offset = lc.ray_offset_voxels * rc.voxel_size
+
+        def trace(idx, dirs):
+            return visibility(grid, points[idx], normals[idx], dirs.astype(np.float32), offset, lc.ray_length)
+
+        design = np.hstack([transfer[:, :self.solver_cfg.fit_bands ** 2]] + [t.transfer[:, None] for t in terms])
+        sun = self.sun(trace, sol, radiance, design, normals)
+        if sun is None:
+            return None, sol
+        disc = disc_rays(sun, self.sun.cfg.rays).astype(np.float32)
+        light = sun_term(sun, visibility(grid, points, normals, disc, offset, lc.ray_length), normals, disc,
+                         self.solver_cfg.fit_bands)
+        joint = solve(radiance, transfer, normals, visible, self.solver_cfg, points=points, reference=previous,
+                      terms=terms + [light])
+        if not joint.terms["sun"] @ sh.LUMINANCE > 0:
+            return None, sol
+        return sun, joint
 
     def process(self, frame: Frame) -> FrameResult:
         """Run every stage on one frame; a weak or empty frame still yields a finite estimate."""
@@ -127,9 +156,21 @@ class Pipeline:
                 gain = self.exposure.gain(points, radiance)[0] if self.exposure is not None else 1.0
                 radiance = radiance / gain
                 previous = self.filter.prediction() if self.filter is not None else self.prev_F
+                terms = [bounce_term(tr.transfer)] if self.bounce else []
                 sol = solve(radiance, tr.transfer, normals, tr.visible_fraction, self.solver_cfg, points=points,
-                            reference=previous)
+                            reference=previous, terms=terms)
+            sun = None
+            if self.sun is not None:
+                with self._timed(t, "sun"):
+                    sun, sol = self._with_sun(grid, radiance, tr.transfer, points, normals, tr.visible_fraction,
+                                              sol, previous, terms)
+            with self._timed(t, "solve"):
                 F, diag = sol.lighting, sol.diagnostics
+                if sun is not None:
+                    diag.sun = {"direction": np.round(sun.direction, 6).tolist(), "angle": sun.angle,
+                                "irradiance": np.round(sol.terms["sun"], 7).tolist(), "gain": round(sun.gain, 5)}
+                if "bounce" in sol.terms:
+                    diag.bounce_radiance = np.round(sol.terms["bounce"], 7).tolist()
                 diag.exposure_gain = gain
                 if self.filter is not None:
                     filtered, diag.change_detected = self.filter.update(sol)
@@ -138,7 +179,7 @@ class Pipeline:
                     self.exposure.update(points, radiance)
             if self.render is not None:
                 with self._timed(t, "render"):
-                    composite = self.render(prep.linear, prep.depth, grid, maps, pose, F.sh, gain)
+                    composite = self.render(prep.linear, prep.depth, grid, maps, pose, F.sh, gain, diag.sun)
         if F is None:  # no pose: keep the previous estimate (or darkness), flagged weak
             prev = self.prev_F if self.prev_F is not None else np.zeros((3, self.solver_cfg.fit_bands ** 2))
             F, diag = Lighting(prev.copy()), SolveDiagnostics(notes=["no pose: previous estimate repeated"])

@@ -87,6 +87,10 @@ class SolveDiagnostics:
     heldout_residual: float | None = None    # median |relative residual| on samples kept out of the fit
     exposure_gain: float = 1.0               # frame gain removed before the solve (against the fused model)
     change_detected: bool = False            # the temporal filter saw a lighting change and restarted
+    # The dominant light traced apart (photoreg.lighting.sun): direction (world, towards it), angle (radius,
+    # radians), irradiance (its e per channel, F's units) and gain (share of the SH-only residual it explains).
+    sun: dict | None = None
+    bounce_radiance: list | None = None      # (3,) radiance the blocked directions see (the one-bounce term)
 
     def to_json(self) -> dict:
         cond = self.condition_number
@@ -100,7 +104,8 @@ class SolveDiagnostics:
                         "albedo": [[round(float(x), 5) for x in row] for row in self.albedo],
                         "inlier_fraction": self.inlier_fraction, "unobserved": list(self.unobserved),
                         "observed_fraction": self.observed_fraction, "heldout_residual": self.heldout_residual,
-                        "exposure_gain": float(self.exposure_gain), "change_detected": bool(self.change_detected)})
+                        "exposure_gain": float(self.exposure_gain), "change_detected": bool(self.change_detected),
+                        "sun": self.sun, "bounce_radiance": self.bounce_radiance})
         return out
 
 

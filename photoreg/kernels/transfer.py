@@ -141,13 +141,9 @@ def _as_warp(a, dtype, device: str, what: str, inner: int | None):
     return wp.array(np.ascontiguousarray(a), dtype=dtype, device=device)
 
 
-def radiance_transfer(grid: DenseGrid, points, normals, dirs, ytable, offset: float, ray_length: float,
-                      device: str | None = None, min_step_voxels: float = 0.5,
-                      virtual: DenseGrid | None = None, threads: int | None = None) -> TransferResult:
-    """R_TR and visible fraction at world points (N, 3) with unit world normals (N, 3; zero = skip),
-    numpy or Warp (vec3, any shape: flattened), over the direction set from make_direction_set.
-    With `virtual` (the virtual objects' SDF grid) the same ray pass also gives R_TRV (transfer_rv).
-    On the CPU the launches are split over `threads` threads (photoreg.kernels.launch)."""
+def _checked_rays(grid: DenseGrid, points, normals, dirs, offset: float, ray_length: float, device: str | None,
+                  min_step_voxels: float, virtual: DenseGrid | None):
+    """Validated (device, points, normals, dirs) Warp arrays for a ray pass over `grid` (ValueError otherwise)."""
     device = grid.device if device is None else str(wp.get_device(device))
     if device != grid.device:
         raise ValueError(f"radiance_transfer: grid lives on {grid.device}, asked to run on {device}")
@@ -159,25 +155,52 @@ def radiance_transfer(grid: DenseGrid, points, normals, dirs, ytable, offset: fl
     p = _as_warp(points, wp.vec3, device, "points", 3)
     n = _as_warp(normals, wp.vec3, device, "normals", 3)
     w = _as_warp(dirs, wp.vec3, device, "dirs", 3)
-    y = _as_warp(ytable, wp.float32, device, "ytable", None)
     if p.shape != n.shape:
         raise ValueError(f"points {p.shape} and normals {n.shape} differ in count")
-    if y.shape[0] != w.shape[0]:
-        raise ValueError(f"ytable has {y.shape[0]} rows for {w.shape[0]} directions")
-    bands_of(y.shape[1])
-    N, D, K = p.shape[0], w.shape[0], y.shape[1]
-    occ = wp.zeros((N, D), dtype=wp.uint8, device=device)
-    transfer = wp.zeros((N, K), dtype=wp.float32, device=device)
-    visible = wp.zeros(N, dtype=wp.float32, device=device)
+    return device, p, n, w
+
+
+def _occlusion_pass(grid: DenseGrid, p, n, w, offset: float, ray_length: float, device: str, min_step_voxels: float,
+                    virtual: DenseGrid | None, threads: int | None) -> wp.array2d:
+    """(N, D) uint8 REAL / VIRTUAL flags of the checked rays (pass 1 of the module docstring)."""
+    occ = wp.zeros((p.shape[0], w.shape[0]), dtype=wp.uint8, device=device)
     v = grid if virtual is None else virtual  # a stand-in when there is no virtual grid (never marched)
-    transfer_rv = visible_rv = None
-    launch_rows(_occlusion, (N, D), device=device, threads=threads,
+    launch_rows(_occlusion, occ.shape, device=device, threads=threads,
                 inputs=[grid.sdf, grid.empty, int(grid.cell), wp.vec3(*grid.origin), float(grid.voxel_size),
                         float(grid.trunc), p, n, w, float(offset), float(ray_length),
                         float(min_step_voxels * grid.voxel_size), int(virtual is not None), v.sdf, v.empty,
                         int(v.cell), wp.vec3(*v.origin), float(v.voxel_size), float(v.trunc),
                         float(min_step_voxels * v.voxel_size)],
                 outputs=[occ])
+    return occ
+
+
+def visibility(grid: DenseGrid, points, normals, dirs, offset: float, ray_length: float, device: str | None = None,
+               min_step_voxels: float = 0.5, threads: int | None = None) -> np.ndarray:
+    """(N, D) bool: ray d from points[i] + normals[i] * offset is in the normal's hemisphere and leaves the real
+    geometry unblocked within ray_length (the occlusion pass alone, for arbitrary directions such as a light's)."""
+    device, p, n, w = _checked_rays(grid, points, normals, dirs, offset, ray_length, device, min_step_voxels, None)
+    occ = _occlusion_pass(grid, p, n, w, offset, ray_length, device, min_step_voxels, None, threads).numpy()
+    return (n.numpy() @ w.numpy().T > 0) & (occ == 0)
+
+
+def radiance_transfer(grid: DenseGrid, points, normals, dirs, ytable, offset: float, ray_length: float,
+                      device: str | None = None, min_step_voxels: float = 0.5,
+                      virtual: DenseGrid | None = None, threads: int | None = None) -> TransferResult:
+    """R_TR and visible fraction at world points (N, 3) with unit world normals (N, 3; zero = skip),
+    numpy or Warp (vec3, any shape: flattened), over the direction set from make_direction_set.
+    With `virtual` (the virtual objects' SDF grid) the same ray pass also gives R_TRV (transfer_rv).
+    On the CPU the launches are split over `threads` threads (photoreg.kernels.launch)."""
+    device, p, n, w = _checked_rays(grid, points, normals, dirs, offset, ray_length, device, min_step_voxels, virtual)
+    y = _as_warp(ytable, wp.float32, device, "ytable", None)
+    if y.shape[0] != w.shape[0]:
+        raise ValueError(f"ytable has {y.shape[0]} rows for {w.shape[0]} directions")
+    bands_of(y.shape[1])
+    N, D, K = p.shape[0], w.shape[0], y.shape[1]
+    occ = _occlusion_pass(grid, p, n, w, offset, ray_length, device, min_step_voxels, virtual, threads)
+    transfer = wp.zeros((N, K), dtype=wp.float32, device=device)
+    visible = wp.zeros(N, dtype=wp.float32, device=device)
+    transfer_rv = visible_rv = None
     launch_rows(_project, (N, K), device=device, threads=threads, inputs=[n, w, y, occ, REAL, 4.0 / D],
                 outputs=[transfer, visible])
     if virtual is not None:

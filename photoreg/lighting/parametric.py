@@ -182,6 +182,25 @@ def parametric_light(F: np.ndarray, direction: np.ndarray | None = None) -> Para
                            lobe_share=float(np.clip(explained[0] / energy, 0.0, 1.0)), notes=notes)
 
 
+def traced_light(F: np.ndarray, direction: np.ndarray, colour: np.ndarray, angle: float) -> ParametricLight:
+    """The light found by tracing its shadows (photoreg.lighting.sun): a disc of integrated radiance `colour`
+    (3,) around unit `direction` with radius `angle`, whose SH F (3, B*B) includes; residual = F - its lobe."""
+    F = np.asarray(F, dtype=np.float64)
+    d = np.asarray(direction, np.float64) / max(float(np.linalg.norm(direction)), 1e-12)
+    colour = np.maximum(np.asarray(colour, np.float64), 0.0)
+    bands = sh.bands_of(F.shape[1])
+    lobe = lobe_sh(colour, d, angle, bands)
+    residual = F - lobe
+    ambient = np.maximum(sh.irradiance(residual, d[None])[0], 0.0)
+    e_lobe = colour * band_attenuation(angle, 2)[1]
+    total = e_lobe + ambient
+    opacity = np.clip(np.where(total > 0, e_lobe / np.maximum(total, 1e-300), 0.0), 0.0, 1.0)
+    lum, lobe_lum = sh.luminance(F)[1:], sh.luminance(lobe)[1:]
+    share = float(np.clip(lobe_lum @ lum / max(float(lum @ lum), 1e-300), 0.0, 1.0)) if colour.any() else 0.0
+    return ParametricLight(direction=d, colour=colour, ambient=ambient, opacity=opacity, angle=angle,
+                           residual=residual, lobe_share=share, notes=["light traced from its shadows"])
+
+
 def receiver_opacity(light: ParametricLight, normals: np.ndarray) -> np.ndarray:
     """Lobe share (N, 3) of the irradiance at receivers with unit normals (N, 3): the strength a full
     shadow of the lobe has there (E_lobe max(n.d, 0) / (E_lobe max(n.d, 0) + E_residual(n)), in [0, 1])."""

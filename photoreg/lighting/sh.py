@@ -138,3 +138,9 @@ def truncate(sh: np.ndarray, bands: int) -> np.ndarray:
     k = min(bands * bands, sh.shape[1])
     out[:, :k] = sh[:, :k]
     return out
+
+
+def blocked_share(transfer: np.ndarray) -> np.ndarray:
+    """(1/pi) * integral (1 - V) max(n.w, 0) dw per point, from the band-0 transfer (R_00 = Y00 * that
+    integral of V), clipped to [0, 1]: (N, B*B) -> (N, 1)."""
+    return np.clip(1.0 - transfer[:, :1] / Y00, 0.0, 1.0)

@@ -22,7 +22,7 @@ import numpy as np
 from photoreg.kernels.grid import DenseGrid
 from photoreg.kernels.raycast import SurfaceMaps
 from photoreg.lighting import sh
-from photoreg.lighting.parametric import ParametricLight, parametric_light
+from photoreg.lighting.parametric import ParametricLight, parametric_light, traced_light
 from photoreg.render.gbuffer import GBuffer
 from photoreg.render.scene import VirtualScene
 
@@ -46,11 +46,16 @@ class RenderInput:
     ray_length: float               # metres
     light_rays: int = 0             # rays over the dominant light's disc (0: the light stays in F's SH)
     scene: VirtualScene | None = None  # the placed objects (renderers that work per object need it)
+    sun: dict | None = None         # the light traced from its shadows (SolveDiagnostics.sun), when found
 
     @cached_property
     def light(self) -> ParametricLight:
-        """The frame's parametric light (one per frame, shared by the renderers), directed along F's band 1:
-        an estimate's best observed band (its higher bands pulled a free fit 25 deg off on the demo)."""
+        """The frame's parametric light (one per frame, shared by the renderers): the traced light when the
+        solve found one (its direction and strength come from the shadows), else a lobe fitted to F along F's
+        band 1, an estimate's best observed band (its higher bands pulled a free fit 25 deg off on the demo)."""
+        if self.sun is not None:
+            return traced_light(self.F, np.array(self.sun["direction"]), np.array(self.sun["irradiance"]),
+                                float(self.sun["angle"]))
         return parametric_light(self.F, sh.dominant_direction(self.F))
 
 
@@ -72,18 +77,12 @@ def shade(F: np.ndarray, transfer: np.ndarray) -> np.ndarray:
     return transfer[:, :K] @ F.T
 
 
-def blocked_share(transfer: np.ndarray) -> np.ndarray:
-    """(1/pi) * integral (1 - V) max(n.w, 0) dw per point, from the band-0 transfer (R_00 = Y00 * that
-    integral of V), clipped to [0, 1]: (N, B*B) -> (N, 1)."""
-    return np.clip(1.0 - transfer[:, :1] / sh.Y00, 0.0, 1.0)
-
-
 def bounce(F: np.ndarray, gain: float, tr: np.ndarray, trv: np.ndarray, real_radiance: np.ndarray,
            virtual_radiance: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Camera-unit shading without albedo under real (R_TR) and real+virtual (R_TRV) occlusion, with one
     ambient bounce: directions blocked by real geometry show `real_radiance` (3,), those blocked only by
     the virtual objects `virtual_radiance` (3,); returns (S_TR, S_TRV), each (N, 3)."""
-    b_tr, b_trv = blocked_share(tr), blocked_share(trv)
+    b_tr, b_trv = sh.blocked_share(tr), sh.blocked_share(trv)
     s_tr = gain * shade(F, tr) + b_tr * real_radiance
     return s_tr, gain * shade(F, trv) + b_tr * real_radiance + np.maximum(b_trv - b_tr, 0.0) * virtual_radiance
 

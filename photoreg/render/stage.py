@@ -38,9 +38,10 @@ class RenderStage:
         return self._dirs[bands]
 
     def __call__(self, camera: np.ndarray, sensor_depth: np.ndarray, grid: DenseGrid, maps: SurfaceMaps,
-                 pose: np.ndarray, F: np.ndarray, gain: float = 1.0) -> np.ndarray:
+                 pose: np.ndarray, F: np.ndarray, gain: float = 1.0, sun: dict | None = None) -> np.ndarray:
         """Composite (H, W, 3 linear) of one frame: camera linear image, sensor depth (metres, 0 invalid),
-        real grid and its stride maps, pose (camera-to-world), lighting F (3, B*B) and exposure gain."""
+        real grid and its stride maps, pose (camera-to-world), lighting F (3, B*B), exposure gain and the
+        traced light (SolveDiagnostics.sun) when the solve found one."""
         rc, lc = self.session.reconstruction, self.session.lighting
         real_depth = raycast_surface(grid, self.intrinsics, pose, rc.depth_min, rc.depth_max, stride=1).depth
         real_depth = np.where(real_depth > 0, real_depth, np.nan_to_num(sensor_depth)).astype(np.float32)
@@ -49,6 +50,6 @@ class RenderStage:
                           virtual=self.virtual, maps=maps, gbuffer=gb, bounds=self.scene.bounds,
                           directions=self.directions, offset=lc.ray_offset_voxels * rc.voxel_size,
                           ray_length=lc.ray_length, light_rays=self.session.render.light_rays,
-                          scene=self.scene)
+                          scene=self.scene, sun=sun)
         self.last_input, self.last = inp, self.renderer(inp)
         return composite(camera, self.last)

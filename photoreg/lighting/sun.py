@@ -1,0 +1,178 @@
+"""The dominant distant light ("sun") found from the shadows and shading it causes, by exact visibility.
+
+A few SH bands cannot hold a small bright light: its hard shadows make the band-limited fit bend the low
+bands (the estimate comes out flatter and its direction off). Where one light dominates, it is better
+modelled apart: I = rho (R . F + e s(d)), s(d) = mean over the light's disc of V(x, w) max(n.w, 0) / pi,
+with V traced through the fused volume (photoreg.lighting.robust solves F and e >= 0 together).
+
+Search for d, given the frame's solve without it (its samples, albedo regions, weights):
+  1. coarse: `candidates` spherical-Fibonacci directions (fixed in the world), one visibility ray each from
+     a subsample of the fitted samples;
+  2. each candidate is scored by how much adding its column lowers the weighted residual of a nearly
+     unregularised fit (`search_regularization`: a column the SH can already represent, such as any light
+     over a single plane, gains nothing; shadows can not be represented and do), summed over channels whose
+     e comes out positive (closed form, by eliminating e: gain = (z - u^T H b)^2 / (v - u^T H u), one small
+     eigen-decomposition per channel for all candidates);
+  3. a distant light does not move: the coarse gains (as shares of the frame's residual) are accumulated
+     over frames with a forgetting factor (`memory` coarse passes) and the best accumulated direction is refined
+     in the frame by two cones of REFINE_DIRS directions, at the coarse spacing and a third of it. The
+     coarse pass (most of the rays) runs every `coarse_every` frames, and on every frame while no light
+     is held; in between only the refinement runs, around the last light;
+  4. accepted when the refined gain is at least `min_gain` of the frame's residual (otherwise no light is
+     claimed: a single plane or an overcast sky gives none).
+Tracing is passed in as a function, so this module stays numpy-only and testable without a volume.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Callable
+
+import numpy as np
+
+from . import sh
+from .parametric import ANGLE_DEFAULT, cone_directions, lobe_sh
+from .robust import Solution, Term
+
+REFINE_DIRS = 24     # directions per refinement cone
+REFINE_LEVELS = (1.0, 1.0 / 3.0)  # cone radii in units of the coarse spacing
+
+
+@dataclass
+class SunConfig:
+    """Settings of the search (module docstring)."""
+
+    candidates: int = 256        # coarse directions over the sphere (spacing about 12.7 degrees)
+    samples: int = 1500          # fitted samples traced per candidate
+    min_gain: float = 0.05       # accept when the light lowers the weighted residual by this share
+    search_regularization: float = 1e-4  # relative Tikhonov strength of the scoring fit (step 2)
+    memory: float = 10.0         # coarse passes over which their gains are accumulated
+    coarse_every: int = 5        # frames between coarse passes while a light is held
+    rays: int = 8                # rays over the light's disc for its final transfer
+    angle: float = ANGLE_DEFAULT  # the light's angular radius (not measured: shading cannot tell it)
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        if not (self.candidates >= 8 and self.samples >= 10 and 0 <= self.min_gain < 1 and self.rays >= 1
+                and 0 < self.angle < math.pi / 2 and self.search_regularization >= 0 and self.memory >= 1
+                and self.coarse_every >= 1):
+            raise ValueError("sun: need candidates >= 8, samples >= 10, 0 <= min_gain < 1, rays >= 1, "
+                             f"0 < angle < 90 degrees, search_regularization >= 0, memory >= 1, coarse_every >= 1 (got {self})")
+
+
+@dataclass
+class Sun:
+    """A found light: unit direction (world, towards the light), angular radius, and the share of the
+    SH-only residual it explains (gain). The strength e comes from the joint solve."""
+
+    direction: np.ndarray
+    angle: float
+    gain: float
+
+
+def direct_transfer(visible: np.ndarray, normals: np.ndarray, dirs: np.ndarray) -> np.ndarray:
+    """(N, D) V max(n.w, 0) / pi per sample and direction, from visibility (N, D) bool."""
+    return visible * np.maximum(np.asarray(normals, np.float64) @ np.asarray(dirs, np.float64).T, 0.0) / math.pi
+
+
+def score(A: np.ndarray, I: np.ndarray, w: np.ndarray, rho: np.ndarray, S: np.ndarray,
+          lam_rel: float) -> tuple[np.ndarray, float]:
+    """Residual reduction (D,) of adding each column of S (N, D) to the Tikhonov fit of I (N, 3) on A (N, K)
+    with sample weights w (N,) and albedos rho (N, 3), summed over channels whose light comes out positive;
+    and the SH-only weighted residual (module docstring, step 2)."""
+    gain, base = np.zeros(S.shape[1]), 0.0
+    k = A.shape[1]
+    for c in range(3):
+        wc = w * rho[:, c] ** 2
+        G = (A * wc[:, None]).T @ A
+        lam = lam_rel * float(np.trace(G)) / k
+        ev, V = np.linalg.eigh(G)
+        ev = np.maximum(ev, 0.0)
+        keep = ev > max(float(ev.max()), 0.0) * k * 1e-13
+        Hhalf = V[:, keep] / np.sqrt(ev[keep] + lam)      # H = Hhalf Hhalf^T
+        y = w * rho[:, c] * I[:, c]
+        b, U = A.T @ y, (A * wc[:, None]).T @ S           # (K,), (K, D)
+        hb, hU = Hhalf.T @ b, Hhalf.T @ U
+        base += max(float((w * I[:, c] ** 2).sum() - hb @ hb), 0.0)
+        num = S.T @ y - hU.T @ hb
+        den = (wc[:, None] * S * S).sum(axis=0) - (hU * hU).sum(axis=0)
+        ok = (den > 1e-12 * np.maximum((wc[:, None] * S * S).sum(axis=0), 1e-300)) & (num > 0)
+        gain += np.where(ok, num * num / np.where(ok, den, 1.0), 0.0)
+    return gain, base
+
+
+class SunSearch:
+    """The search with its state across frames (the accumulated coarse gains; module docstring)."""
+
+    def __init__(self, cfg: SunConfig):
+        self.cfg = cfg
+        self.coarse = sh.fibonacci_sphere(cfg.candidates)
+        self.votes = np.zeros(cfg.candidates)
+        self.held: np.ndarray | None = None   # the last frame's light direction
+        self.frames = 0
+
+    def __call__(self, trace: Callable[[np.ndarray, np.ndarray], np.ndarray], sol: Solution, radiance: np.ndarray,
+                 design: np.ndarray, normals: np.ndarray) -> Sun | None:
+        """The frame's dominant light from the solution `sol` without it (on radiance (N, 3), its design
+        (N, K'): the SH transfer and any other extra terms' columns, normals (N, 3)), or None when none
+        explains `cfg.min_gain` of the residual. trace(idx, dirs) gives the visibility (len(idx), D) bool
+        of directions dirs (D, 3) from the samples idx."""
+        inputs = _search_inputs(sol, radiance, design, normals, self.cfg)
+        if inputs is None:
+            return None
+        A, I, w, rho, nrm, idx = inputs
+        lam, cfg = self.cfg.search_regularization, self.cfg
+
+        def gains(dirs):
+            return score(A, I, w, rho, direct_transfer(trace(idx, dirs), nrm, dirs), lam)
+
+        coarse = self.held is None or self.frames % cfg.coarse_every == 0
+        self.frames += 1
+        if coarse:
+            g, base = gains(self.coarse)
+            self.votes = self.votes * (1.0 - 1.0 / cfg.memory) + (g / base if base > 0 else 0.0)
+            best = self.coarse[int(np.argmax(self.votes))]
+            best_gain = float(g[int(np.argmax(self.votes))])
+        else:
+            g, base = gains(self.held[None])
+            best, best_gain = self.held, float(g[0])
+        self.held = None
+        if base <= 0:
+            return None
+        spacing = math.sqrt(4 * math.pi / cfg.candidates)
+        for level in REFINE_LEVELS:
+            dirs = np.vstack([best, cone_directions(best, level * spacing, REFINE_DIRS)])
+            g, _ = gains(dirs)
+            j = int(np.argmax(g))
+            if g[j] > best_gain:
+                best, best_gain = dirs[j] / np.linalg.norm(dirs[j]), float(g[j])
+        if best_gain < cfg.min_gain * base:
+            return None
+        self.held = best
+        return Sun(direction=best, angle=cfg.angle, gain=best_gain / base)
+
+
+def _search_inputs(sol: Solution, radiance, design, normals, cfg: SunConfig):
+    """(A, I, w, rho, normals, idx) of a subsample of the fitted samples, or None with too few."""
+    if sol.samples is None or sol.system is None:
+        return None
+    live = sol.weights > 0
+    idx, labels, w = sol.samples[live], sol.labels[live], sol.weights[live]
+    if idx.size < 10:
+        return None
+    if idx.size > cfg.samples:
+        pick = np.sort(np.random.default_rng(cfg.seed).choice(idx.size, cfg.samples, replace=False))
+        idx, labels, w = idx[pick], labels[pick], w[pick]
+    return (np.asarray(design, np.float64)[idx], np.asarray(radiance, np.float64)[idx], w,
+            sol.albedo[np.maximum(labels, 0)], np.asarray(normals, np.float64)[idx], idx)
+
+
+def sun_term(sun: Sun, visible: np.ndarray, normals: np.ndarray, disc: np.ndarray, bands: int) -> Term:
+    """The solve's term of a found sun from the visibility (N, R) of its disc's rays `disc` (R, 3)."""
+    s = direct_transfer(visible, normals, disc).mean(axis=1)
+    return Term("sun", s, lobe_sh(np.ones(1), sun.direction, sun.angle, bands)[0])
+
+
+def disc_rays(sun: Sun, n: int) -> np.ndarray:
+    """n directions (n, 3) over the sun's disc (the centre alone when n = 1)."""
+    return sun.direction[None] if n == 1 else cone_directions(sun.direction, sun.angle, n)
