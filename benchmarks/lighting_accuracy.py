@@ -37,6 +37,7 @@ from photoreg.io.recording import iter_frames, open_recording  # noqa: E402
 from photoreg.synth.scenes import SCENE_KINDS  # noqa: E402
 
 PAPER = dict(bands=3, loss="none", albedo="single", select="fixed", bin_min_fraction=0.0, max_normal_angle=180.0,
+             sun=False, bounce=False,
              max_samples=20000,
              max_depth_gap_voxels=float("inf"), temporal=False, exposure=False)
 METHODS = {"paper": PAPER, "robust": {}}
@@ -47,7 +48,7 @@ ABLATIONS = {  # one change each against the defaults, on the recordings with gr
     "albedo_reference mean": {"albedo_reference": "mean"}, "albedo_reference largest": {"albedo_reference": "largest"},
     "no sample checks": {"max_normal_angle": 180.0, "max_depth_gap_voxels": float("inf")},
     "bin_min_fraction 0": {"bin_min_fraction": 0.0}, "no temporal filter": {"temporal": False},
-    "no exposure gain": {"exposure": False},
+    "no exposure gain": {"exposure": False}, "no traced sun": {"sun": False}, "no bounce": {"bounce": False},
 }
 REAL_ABLATIONS = ("defaults", "no temporal filter", "no exposure gain")  # also run on the real recordings
 HOLDOUT = 0.2

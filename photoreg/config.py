@@ -64,11 +64,11 @@ class LightingConfig:
     process_noise: float = 0.02   # filter random-walk step, share of a frame's measurement variance
     change_threshold: float = 1.0  # restart the filter when the prediction fits (1 + this) x worse than usual
     exposure: bool = True         # per-frame gain against the fused radiance (auto-exposure)
-    bounce: bool = False          # one bounce in the model (blocked directions see radiance e); mixed: see benchmarks
+    bounce: bool = True           # one bounce in the model: directions blocked by real geometry see radiance e
     sun: bool = True              # trace the dominant light apart from the SH (photoreg.lighting.sun; fixed bands)
     sun_candidates: int = 256     # coarse directions searched over the sphere
     sun_samples: int = 1500       # samples traced per candidate direction
-    sun_min_gain: float = 0.05    # claim a light when it explains this share of the SH-only residual
+    sun_min_gain: float = 0.05    # keep a light that explains this share of the residual (2x to claim one)
     sun_rays: int = 8             # rays over the light's disc in the joint solve
 
 

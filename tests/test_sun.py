@@ -76,6 +76,28 @@ def test_extra_terms_are_recovered_exactly_and_kept_non_negative():
         solve(radiance, transfer, normals, np.ones(len(normals)), SolverConfig(bands=5, select="gcv"), terms=[term])
 
 
+def test_bounce_term_takes_the_light_of_blocked_directions():
+    """Samples whose blocked directions see a bright surface (radiance 0.6): with the bounce term the solve
+    recovers that radiance and the sky; without it the sky's irradiance comes out biased."""
+    rng = np.random.default_rng(3)
+    radiance, transfer, normals, t_sun, sky, colour, _ = model_samples(rng, albedos=((0.8, 0.8, 0.8),) * 2)
+    blocked = sh.blocked_share(transfer)[:, 0]
+    lit = (radiance + 0.8 * np.outer(blocked, [0.6, 0.5, 0.4])) / 0.8   # albedo 0.8 everywhere
+    cfg = SolverConfig(bands=5, regularization=0.0, saturation_level=None, loss="huber")
+    term = Term("sun", t_sun, lobe_sh(np.ones(1), SUN, 1e-9, 5)[0])
+    with_bounce = solve(lit, transfer, normals, np.ones(len(normals)), cfg, terms=[term, bounce_term(transfer)])
+    assert np.allclose(with_bounce.terms["bounce"], [0.6, 0.5, 0.4], rtol=1e-4)
+    truth = sky + np.outer(colour, term.sh)
+    up = sh.fibonacci_sphere(500)
+    up = up[up[:, 2] > 0]
+
+    def err(F):
+        return float(np.abs(sh.irradiance(F, up) - sh.irradiance(truth, up)).max() / sh.irradiance(truth, up).max())
+
+    without = solve(lit, transfer, normals, np.ones(len(normals)), cfg, terms=[term])
+    assert err(with_bounce.lighting.sh) < 1e-4 < 0.01 < err(without.lighting.sh)
+
+
 def test_search_finds_the_sun_from_its_shadows_and_the_joint_solve_fits_it():
     rng = np.random.default_rng(1)
     radiance, transfer, normals, _, sky, colour, (axis, cos_r) = model_samples(rng)

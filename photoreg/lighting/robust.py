@@ -23,7 +23,8 @@ I_i = rho * (R_i . F + sum_j e_j t_ij); the SH part keeps the Tikhonov term. Two
   * one bounce (interreflection): t = (1/pi) integral (1 - V) max(n.w, 0) dw, the share of the hemisphere
     that real geometry blocks, e the radiance those blocked directions see. Without it the light a floor
     throws onto the sides of objects (+20-110% on the generated tabletop's vertical faces, measured with the
-    true lighting and albedos) is taken for distant light from the horizon. It is local, so it adds no SH.
+    true lighting and albedos) is taken for sunlight or distant light from the horizon. It is local, so it
+    adds no SH. One e for every blocked direction: wrong where lit and unlit walls surround a sample.
 
 Order selection (cfg.select): the band count B in 1..cfg.max_bands and the regularisation in
 cfg.lambdas are chosen per frame on the converged weights and albedos by GCV, K-fold held-out

@@ -17,9 +17,11 @@ Search for d, given the frame's solve without it (its samples, albedo regions, w
      over frames with a forgetting factor (`memory` coarse passes) and the best accumulated direction is refined
      in the frame by two cones of REFINE_DIRS directions, at the coarse spacing and a third of it. The
      coarse pass (most of the rays) runs every `coarse_every` frames, and on every frame while no light
-     is held; in between only the refinement runs, around the last light;
-  4. accepted when the refined gain is at least `min_gain` of the frame's residual (otherwise no light is
-     claimed: a single plane or an overcast sky gives none).
+     is held; in between only the refinement runs, from the same accumulated best coarse direction (not
+     from the last refined one: refining a refinement drifts);
+  4. accepted when the refined gain is at least `min_gain` of the frame's residual while a light is held,
+     twice that to claim a new one (hysteresis: a light near the threshold must not blink on and off);
+     otherwise no light is claimed (a single plane or an overcast sky gives none).
 Tracing is passed in as a function, so this module stays numpy-only and testable without a volume.
 """
 from __future__ import annotations
@@ -44,7 +46,7 @@ class SunConfig:
 
     candidates: int = 256        # coarse directions over the sphere (spacing about 12.7 degrees)
     samples: int = 1500          # fitted samples traced per candidate
-    min_gain: float = 0.05       # accept when the light lowers the weighted residual by this share
+    min_gain: float = 0.05       # keep a held light that lowers the weighted residual by this share (new: 2x)
     search_regularization: float = 1e-4  # relative Tikhonov strength of the scoring fit (step 2)
     memory: float = 10.0         # coarse passes over which their gains are accumulated
     coarse_every: int = 5        # frames between coarse passes while a light is held
@@ -108,7 +110,7 @@ class SunSearch:
         self.cfg = cfg
         self.coarse = sh.fibonacci_sphere(cfg.candidates)
         self.votes = np.zeros(cfg.candidates)
-        self.held: np.ndarray | None = None   # the last frame's light direction
+        self.held: np.ndarray | None = None   # the accumulated best coarse direction while a light is held
         self.frames = 0
 
     def __call__(self, trace: Callable[[np.ndarray, np.ndarray], np.ndarray], sol: Solution, radiance: np.ndarray,
@@ -126,17 +128,19 @@ class SunSearch:
         def gains(dirs):
             return score(A, I, w, rho, direct_transfer(trace(idx, dirs), nrm, dirs), lam)
 
-        coarse = self.held is None or self.frames % cfg.coarse_every == 0
+        holding = self.held is not None
+        coarse = not holding or self.frames % cfg.coarse_every == 0
         self.frames += 1
         if coarse:
             g, base = gains(self.coarse)
             self.votes = self.votes * (1.0 - 1.0 / cfg.memory) + (g / base if base > 0 else 0.0)
-            best = self.coarse[int(np.argmax(self.votes))]
+            start = self.coarse[int(np.argmax(self.votes))]
             best_gain = float(g[int(np.argmax(self.votes))])
         else:
-            g, base = gains(self.held[None])
-            best, best_gain = self.held, float(g[0])
-        self.held = None
+            start = self.held
+            g, base = gains(start[None])
+            best_gain = float(g[0])
+        self.held, best = None, start
         if base <= 0:
             return None
         spacing = math.sqrt(4 * math.pi / cfg.candidates)
@@ -146,9 +150,9 @@ class SunSearch:
             j = int(np.argmax(g))
             if g[j] > best_gain:
                 best, best_gain = dirs[j] / np.linalg.norm(dirs[j]), float(g[j])
-        if best_gain < cfg.min_gain * base:
+        if best_gain < cfg.min_gain * (1.0 if holding else 2.0) * base:
             return None
-        self.held = best
+        self.held = start
         return Sun(direction=best, angle=cfg.angle, gain=best_gain / base)
 
 
