@@ -68,7 +68,7 @@ class LightingConfig:
     sun: bool = True              # trace the dominant light apart from the SH (photoreg.lighting.sun; fixed bands)
     sun_candidates: int = 256     # coarse directions searched over the sphere
     sun_samples: int = 1500       # samples traced per candidate direction
-    sun_min_gain: float = 0.05    # keep a light that explains this share of the residual (2x to claim one)
+    sun_min_gain: float = 0.05    # hold a light whose mean share of the residual explained is at least this
     sun_rays: int = 8             # rays over the light's disc in the joint solve
 
 

@@ -113,9 +113,7 @@ class Pipeline:
                          self.solver_cfg.fit_bands)
         joint = solve(radiance, transfer, normals, visible, self.solver_cfg, points=points, reference=previous,
                       terms=terms + [light])
-        # The search scores with the frame's first albedos and weights; the joint fit must confirm the gain.
-        kept = (joint.diagnostics.residual_rms / max(sol.diagnostics.residual_rms, 1e-300)) ** 2
-        if not (joint.terms["sun"] @ sh.LUMINANCE > 0 and kept <= 1.0 - self.sun.cfg.min_gain):
+        if not joint.terms["sun"] @ sh.LUMINANCE > 0:
             return None, sol
         return sun, joint
 

@@ -16,12 +16,12 @@ Search for d, given the frame's solve without it (its samples, albedo regions, w
   3. a distant light does not move: the coarse gains (as shares of the frame's residual) are accumulated
      over frames with a forgetting factor (`memory` coarse passes) and the best accumulated direction is refined
      in the frame by two cones of REFINE_DIRS directions, at the coarse spacing and a third of it. The
-     coarse pass (most of the rays) runs every `coarse_every` frames, and on every frame while no light
-     is held; in between only the refinement runs, from the same accumulated best coarse direction (not
-     from the last refined one: refining a refinement drifts);
-  4. accepted when the refined gain is at least `min_gain` of the frame's residual while a light is held,
-     twice that to claim a new one (hysteresis: a light near the threshold must not blink on and off);
-     otherwise no light is claimed (a single plane or an overcast sky gives none).
+     coarse pass (most of the rays) runs every `coarse_every` frames; in between, while a light is held,
+     only the refinement runs, from the same accumulated best coarse direction (not from the last refined
+     one: refining a refinement drifts), and with no light held nothing runs;
+  4. a light is held from one coarse pass to the next when the accumulated mean gain of its direction is
+     at least `min_gain` of the residual: evidence over frames, so that a light near the threshold does not
+     blink on and off; otherwise none is claimed (a single plane or an overcast sky gives none).
 Tracing is passed in as a function, so this module stays numpy-only and testable without a volume.
 """
 from __future__ import annotations
@@ -46,7 +46,7 @@ class SunConfig:
 
     candidates: int = 256        # coarse directions over the sphere (spacing about 12.7 degrees)
     samples: int = 1500          # fitted samples traced per candidate
-    min_gain: float = 0.05       # keep a held light that lowers the weighted residual by this share (new: 2x)
+    min_gain: float = 0.05       # hold a light whose mean gain (share of the residual) is at least this
     search_regularization: float = 1e-4  # relative Tikhonov strength of the scoring fit (step 2)
     memory: float = 10.0         # coarse passes over which their gains are accumulated
     coarse_every: int = 5        # frames between coarse passes while a light is held
@@ -109,16 +109,17 @@ class SunSearch:
     def __init__(self, cfg: SunConfig):
         self.cfg = cfg
         self.coarse = sh.fibonacci_sphere(cfg.candidates)
-        self.votes = np.zeros(cfg.candidates)
-        self.held: np.ndarray | None = None   # the accumulated best coarse direction while a light is held
+        self.votes = np.zeros(cfg.candidates)  # forgetting sums of the coarse passes' gain shares ...
+        self.weight = 0.0                      # ... and of the passes themselves: votes / weight = mean share
+        self.held: np.ndarray | None = None    # the accumulated best coarse direction while a light is held
         self.frames = 0
 
     def __call__(self, trace: Callable[[np.ndarray, np.ndarray], np.ndarray], sol: Solution, radiance: np.ndarray,
                  design: np.ndarray, normals: np.ndarray) -> Sun | None:
         """The frame's dominant light from the solution `sol` without it (on radiance (N, 3), its design
-        (N, K'): the SH transfer and any other extra terms' columns, normals (N, 3)), or None when none
-        explains `cfg.min_gain` of the residual. trace(idx, dirs) gives the visibility (len(idx), D) bool
-        of directions dirs (D, 3) from the samples idx."""
+        (N, K'): the SH transfer and any other extra terms' columns, normals (N, 3)), or None when none is
+        held. trace(idx, dirs) gives the visibility (len(idx), D) bool of directions dirs (D, 3) from the
+        samples idx."""
         inputs = _search_inputs(sol, radiance, design, normals, self.cfg)
         if inputs is None:
             return None
@@ -126,34 +127,27 @@ class SunSearch:
         lam, cfg = self.cfg.search_regularization, self.cfg
 
         def gains(dirs):
-            return score(A, I, w, rho, direct_transfer(trace(idx, dirs), nrm, dirs), lam)
+            g, base = score(A, I, w, rho, direct_transfer(trace(idx, dirs), nrm, dirs), lam)
+            return g / base if base > 0 else np.zeros(len(dirs))
 
-        holding = self.held is not None
-        coarse = not holding or self.frames % cfg.coarse_every == 0
+        if self.frames % cfg.coarse_every == 0:
+            keep = 1.0 - 1.0 / cfg.memory
+            self.votes = self.votes * keep + gains(self.coarse)
+            self.weight = self.weight * keep + 1.0
+            j = int(np.argmax(self.votes))
+            self.held = self.coarse[j] if self.votes[j] >= cfg.min_gain * self.weight else None
         self.frames += 1
-        if coarse:
-            g, base = gains(self.coarse)
-            self.votes = self.votes * (1.0 - 1.0 / cfg.memory) + (g / base if base > 0 else 0.0)
-            start = self.coarse[int(np.argmax(self.votes))]
-            best_gain = float(g[int(np.argmax(self.votes))])
-        else:
-            start = self.held
-            g, base = gains(start[None])
-            best_gain = float(g[0])
-        self.held, best = None, start
-        if base <= 0:
+        if self.held is None:
             return None
+        best, best_gain = self.held, float(gains(self.held[None])[0])
         spacing = math.sqrt(4 * math.pi / cfg.candidates)
         for level in REFINE_LEVELS:
             dirs = np.vstack([best, cone_directions(best, level * spacing, REFINE_DIRS)])
-            g, _ = gains(dirs)
+            g = gains(dirs)
             j = int(np.argmax(g))
             if g[j] > best_gain:
                 best, best_gain = dirs[j] / np.linalg.norm(dirs[j]), float(g[j])
-        if best_gain < cfg.min_gain * (1.0 if holding else 2.0) * base:
-            return None
-        self.held = start
-        return Sun(direction=best, angle=cfg.angle, gain=best_gain / base)
+        return Sun(direction=best, angle=cfg.angle, gain=best_gain)
 
 
 def _search_inputs(sol: Solution, radiance, design, normals, cfg: SunConfig):
