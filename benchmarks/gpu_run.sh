@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # What ran on the GPU machine (after the wheels of warp-lang 1.19.0, open3d 0.20.0 (CUDA build) and
-# pyrender 0.1.45 with its pure-Python dependencies were installed into /tmp/site): CUDA correctness,
+# pyrender 0.1.45 with its pure-Python dependencies (trimesh among them: gpu_profile.py needs it) were
+# installed into /tmp/site): CUDA correctness,
 # then the figures of benchmarks/gpu.md, benchmarks/speed.md and benchmarks/renderers.md.
 # usage: bash benchmarks/gpu_run.sh RECORDING OUTDIR STEP...
 #   speed      cuda_check, `photoreg bench speed` at four settings, gpu_profile.py, peers.py
