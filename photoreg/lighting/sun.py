@@ -49,7 +49,7 @@ class SunConfig:
     min_gain: float = 0.05       # hold a light whose mean gain (share of the residual) is at least this
     search_regularization: float = 1e-4  # relative Tikhonov strength of the scoring fit (step 2)
     memory: float = 10.0         # coarse passes over which their gains are accumulated
-    coarse_every: int = 5        # frames between coarse passes while a light is held
+    coarse_every: int = 5        # frames between coarse passes (between them: refinement of a held light only)
     rays: int = 8                # rays over the light's disc for its final transfer
     angle: float = ANGLE_DEFAULT  # the light's angular radius (not measured: shading cannot tell it)
     seed: int = 0
@@ -81,7 +81,7 @@ def score(A: np.ndarray, I: np.ndarray, w: np.ndarray, rho: np.ndarray, S: np.nd
           lam_rel: float) -> tuple[np.ndarray, float]:
     """Residual reduction (D,) of adding each column of S (N, D) to the Tikhonov fit of I (N, 3) on A (N, K)
     with sample weights w (N,) and albedos rho (N, 3), summed over channels whose light comes out positive;
-    and the SH-only weighted residual (module docstring, step 2)."""
+    and the weighted residual without any of them (module docstring, step 2)."""
     gain, base = np.zeros(S.shape[1]), 0.0
     k = A.shape[1]
     for c in range(3):
