@@ -156,7 +156,7 @@ class Pipeline:
                 gain = self.exposure.gain(points, radiance)[0] if self.exposure is not None else 1.0
                 radiance = radiance / gain
                 previous = self.filter.prediction() if self.filter is not None else self.prev_F
-                terms = [bounce_term(tr.transfer)] if self.bounce else []
+                terms = [bounce_term(tr.transfer, radiance)] if self.bounce else []
                 sol = solve(radiance, tr.transfer, normals, tr.visible_fraction, self.solver_cfg, points=points,
                             reference=previous, terms=terms)
             sun = None

@@ -69,7 +69,7 @@ def test_extra_terms_are_recovered_exactly_and_kept_non_negative():
     sol = solve(np.clip(dark, 1e-3, None), transfer, normals, np.ones(len(normals)), cfg, terms=[term])
     assert np.all(sol.terms["sun"] == 0) and np.isfinite(sol.lighting.sh).all()
     # A bounce term with nothing blocked has no information: its e is 0, not NaN.
-    free = bounce_term(sh.unoccluded_transfer(normals, 5))
+    free = bounce_term(sh.unoccluded_transfer(normals, 5), radiance)
     sol = solve(radiance, transfer, normals, np.ones(len(normals)), cfg, terms=[free])
     assert np.all(sol.terms["bounce"] == 0) and np.isfinite(sol.lighting.sh).all()
     with pytest.raises(ValueError, match="select"):
@@ -85,7 +85,7 @@ def test_bounce_term_takes_the_light_of_blocked_directions():
     lit = (radiance + 0.8 * np.outer(blocked, [0.6, 0.5, 0.4])) / 0.8   # albedo 0.8 everywhere
     cfg = SolverConfig(bands=5, regularization=0.0, saturation_level=None, loss="huber")
     term = Term("sun", t_sun, lobe_sh(np.ones(1), SUN, 1e-9, 5)[0])
-    with_bounce = solve(lit, transfer, normals, np.ones(len(normals)), cfg, terms=[term, bounce_term(transfer)])
+    with_bounce = solve(lit, transfer, normals, np.ones(len(normals)), cfg, terms=[term, bounce_term(transfer, lit)])
     assert np.allclose(with_bounce.terms["bounce"], [0.6, 0.5, 0.4], rtol=1e-4)
     truth = sky + np.outer(colour, term.sh)
     up = sh.fibonacci_sphere(500)
@@ -96,6 +96,10 @@ def test_bounce_term_takes_the_light_of_blocked_directions():
 
     without = solve(lit, transfer, normals, np.ones(len(normals)), cfg, terms=[term])
     assert err(with_bounce.lighting.sh) < 1e-4 < 0.01 < err(without.lighting.sh)
+    # The bound (the median observed radiance in the pipeline) holds the bounce at it; the rest refits.
+    capped = Term("bounce", blocked, upper=np.array([0.3, 0.6, 0.2]))
+    sol = solve(lit, transfer, normals, np.ones(len(normals)), cfg, terms=[term, capped])
+    assert np.allclose(sol.terms["bounce"], [0.3, 0.5, 0.2]) and np.isfinite(sol.lighting.sh).all()
 
 
 def test_search_finds_the_sun_from_its_shadows_and_the_joint_solve_fits_it():
