@@ -104,7 +104,9 @@ class Pipeline:
         def trace(idx, dirs):
             return visibility(grid, points[idx], normals[idx], dirs.astype(np.float32), offset, lc.ray_length)
 
-        design = np.hstack([transfer[:, :self.solver_cfg.fit_bands ** 2]] + [t.transfer[:, None] for t in terms])
+        def design(idx):
+            return np.hstack([transfer[idx, :self.solver_cfg.fit_bands ** 2]] + [t.transfer[idx, None] for t in terms])
+
         sun = self.sun(trace, sol, radiance, design, normals)
         if sun is None:
             return None, sol

@@ -111,7 +111,7 @@ def test_search_finds_the_sun_from_its_shadows_and_the_joint_solve_fits_it():
         return visible(normals[idx], axis[idx], cos_r[idx], dirs)
 
     sol = solve(radiance, transfer, normals, np.ones(len(normals)), cfg)
-    found = SunSearch(SunConfig())(trace, sol, radiance, transfer, normals)
+    found = SunSearch(SunConfig())(trace, sol, radiance, lambda idx: transfer[idx], normals)
     assert found is not None and math.degrees(math.acos(min(1.0, found.direction @ SUN))) < 2.0
     assert found.gain > 0.3   # shadows the 5-band SH cannot hold
     disc = found.direction[None]
@@ -132,7 +132,8 @@ def test_no_light_is_claimed_without_shadows():
     transfer = sh.unoccluded_transfer(normals, 5)
     radiance = np.clip(0.5 + 0.01 * rng.normal(size=(n, 3)), 0.01, None)
     sol = solve(radiance, transfer, normals, np.ones(n), SolverConfig(bands=5, **ROBUST))
-    found = SunSearch(SunConfig())(lambda idx, dirs: normals[idx] @ dirs.T > 0, sol, radiance, transfer, normals)
+    found = SunSearch(SunConfig())(lambda idx, dirs: normals[idx] @ dirs.T > 0, sol, radiance,
+                                   lambda idx: transfer[idx], normals)
     assert found is None
 
 

@@ -167,19 +167,24 @@ def parametric_light(F: np.ndarray, direction: np.ndarray | None = None) -> Para
     g = band_attenuation(angle, bands)
     c_lum, explained = _lobe_fit(_band_sums(lum, d, bands), g, n_l)
     colour = np.maximum(_lobe_fit(_band_sums(F, d, bands), g, n_l)[0], 0.0)
-    residual = F - lobe_sh(colour, d, angle, bands)
-    ambient = sh.irradiance(residual, d[None])[0]
+    residual, ambient, opacity = _split(F, colour, d, angle)
     if np.any(ambient < 0):
         notes.append("residual irradiance at the light's normal is negative in some channel: clamped to 0")
-    ambient = np.maximum(ambient, 0.0)
-    e_lobe = colour * g[1]
-    total = e_lobe + ambient
-    opacity = np.where(total > 0, e_lobe / np.maximum(total, 1e-300), 0.0)
     if c_lum[0] <= 0 or float(np.max(opacity)) < MIN_LOBE_SHARE:
         return _no_light(F, d, f"no positive directional lobe in bands >= {lo}: all ambient")
-    return ParametricLight(direction=d, colour=colour, ambient=ambient, opacity=np.clip(opacity, 0.0, 1.0),
+    return ParametricLight(direction=d, colour=colour, ambient=np.maximum(ambient, 0.0), opacity=opacity,
                            angle=angle, residual=residual,
                            lobe_share=float(np.clip(explained[0] / energy, 0.0, 1.0)), notes=notes)
+
+
+def _split(F: np.ndarray, colour: np.ndarray, d: np.ndarray, angle: float):
+    """(residual F - the disc's SH, the residual's irradiance at the normal facing the light (unclamped),
+    opacity E_lobe / (E_lobe + max(that, 0)) in [0, 1]) of a disc lobe of integrated radiance colour (3,)."""
+    residual = F - lobe_sh(colour, d, angle, sh.bands_of(F.shape[1]))
+    ambient = sh.irradiance(residual, d[None])[0]
+    e_lobe = colour * band_attenuation(angle, 2)[1]
+    total = e_lobe + np.maximum(ambient, 0.0)
+    return residual, ambient, np.clip(np.where(total > 0, e_lobe / np.maximum(total, 1e-300), 0.0), 0.0, 1.0)
 
 
 def traced_light(F: np.ndarray, direction: np.ndarray, colour: np.ndarray, angle: float) -> ParametricLight:
@@ -188,17 +193,11 @@ def traced_light(F: np.ndarray, direction: np.ndarray, colour: np.ndarray, angle
     F = np.asarray(F, dtype=np.float64)
     d = np.asarray(direction, np.float64) / max(float(np.linalg.norm(direction)), 1e-12)
     colour = np.maximum(np.asarray(colour, np.float64), 0.0)
-    bands = sh.bands_of(F.shape[1])
-    lobe = lobe_sh(colour, d, angle, bands)
-    residual = F - lobe
-    ambient = np.maximum(sh.irradiance(residual, d[None])[0], 0.0)
-    e_lobe = colour * band_attenuation(angle, 2)[1]
-    total = e_lobe + ambient
-    opacity = np.clip(np.where(total > 0, e_lobe / np.maximum(total, 1e-300), 0.0), 0.0, 1.0)
-    lum, lobe_lum = sh.luminance(F)[1:], sh.luminance(lobe)[1:]
+    residual, ambient, opacity = _split(F, colour, d, angle)
+    lum, lobe_lum = sh.luminance(F)[1:], sh.luminance(F - residual)[1:]
     share = float(np.clip(lobe_lum @ lum / max(float(lum @ lum), 1e-300), 0.0, 1.0)) if colour.any() else 0.0
-    return ParametricLight(direction=d, colour=colour, ambient=ambient, opacity=opacity, angle=angle,
-                           residual=residual, lobe_share=share, notes=["light traced from its shadows"])
+    return ParametricLight(direction=d, colour=colour, ambient=np.maximum(ambient, 0.0), opacity=opacity,
+                           angle=angle, residual=residual, lobe_share=share, notes=["light traced from its shadows"])
 
 
 def receiver_opacity(light: ParametricLight, normals: np.ndarray) -> np.ndarray:

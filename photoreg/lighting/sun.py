@@ -115,31 +115,34 @@ class SunSearch:
         self.frames = 0
 
     def __call__(self, trace: Callable[[np.ndarray, np.ndarray], np.ndarray], sol: Solution, radiance: np.ndarray,
-                 design: np.ndarray, normals: np.ndarray) -> Sun | None:
-        """The frame's dominant light from the solution `sol` without it (on radiance (N, 3), its design
-        (N, K'): the SH transfer and any other extra terms' columns, normals (N, 3)), or None when none is
-        held. trace(idx, dirs) gives the visibility (len(idx), D) bool of directions dirs (D, 3) from the
-        samples idx."""
-        inputs = _search_inputs(sol, radiance, design, normals, self.cfg)
-        if inputs is None:
+                 design: Callable[[np.ndarray], np.ndarray], normals: np.ndarray) -> Sun | None:
+        """The frame's dominant light from the solution `sol` without it (on radiance (N, 3) and normals
+        (N, 3)), or None when none is held. design(idx) gives the rows (len(idx), K') of its design (the SH
+        transfer and any other extra terms' columns); trace(idx, dirs) the visibility (len(idx), D) bool of
+        directions dirs (D, 3) from the samples idx."""
+        cfg = self.cfg
+        if sol.samples is None or sol.system is None or int((sol.weights > 0).sum()) < 10:
             return None
-        A, I, w, rho, nrm, idx = inputs
-        lam, cfg = self.cfg.search_regularization, self.cfg
+        coarse = self.frames % cfg.coarse_every == 0
+        self.frames += 1
+        if not coarse and self.held is None:
+            return None
+        A, I, w, rho, nrm, idx = _search_inputs(sol, radiance, design, normals, cfg)
+        lam = cfg.search_regularization
 
         def gains(dirs):
             g, base = score(A, I, w, rho, direct_transfer(trace(idx, dirs), nrm, dirs), lam)
             return g / base if base > 0 else np.zeros(len(dirs))
 
-        if self.frames % cfg.coarse_every == 0:
+        if coarse:
             keep = 1.0 - 1.0 / cfg.memory
             self.votes = self.votes * keep + gains(self.coarse)
             self.weight = self.weight * keep + 1.0
             j = int(np.argmax(self.votes))
             self.held = self.coarse[j] if self.votes[j] >= cfg.min_gain * self.weight else None
-        self.frames += 1
         if self.held is None:
             return None
-        best, best_gain = self.held, float(gains(self.held[None])[0])
+        best, best_gain = self.held, -math.inf   # the first cone holds the start direction itself
         spacing = math.sqrt(4 * math.pi / cfg.candidates)
         for level in REFINE_LEVELS:
             dirs = np.vstack([best, cone_directions(best, level * spacing, REFINE_DIRS)])
@@ -151,17 +154,13 @@ class SunSearch:
 
 
 def _search_inputs(sol: Solution, radiance, design, normals, cfg: SunConfig):
-    """(A, I, w, rho, normals, idx) of a subsample of the fitted samples, or None with too few."""
-    if sol.samples is None or sol.system is None:
-        return None
+    """(A, I, w, rho, normals, idx) of a subsample of at most cfg.samples of the fitted samples."""
     live = sol.weights > 0
     idx, labels, w = sol.samples[live], sol.labels[live], sol.weights[live]
-    if idx.size < 10:
-        return None
     if idx.size > cfg.samples:
         pick = np.sort(np.random.default_rng(cfg.seed).choice(idx.size, cfg.samples, replace=False))
         idx, labels, w = idx[pick], labels[pick], w[pick]
-    return (np.asarray(design, np.float64)[idx], np.asarray(radiance, np.float64)[idx], w,
+    return (np.asarray(design(idx), np.float64), np.asarray(radiance, np.float64)[idx], w,
             sol.albedo[np.maximum(labels, 0)], np.asarray(normals, np.float64)[idx], idx)
 
 
