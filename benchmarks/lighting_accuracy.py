@@ -49,6 +49,8 @@ ABLATIONS = {  # one change each against the defaults, on the recordings with gr
     "no sample checks": {"max_normal_angle": 180.0, "max_depth_gap_voxels": float("inf")},
     "bin_min_fraction 0": {"bin_min_fraction": 0.0}, "no temporal filter": {"temporal": False},
     "no exposure gain": {"exposure": False}, "no traced sun": {"sun": False}, "no bounce": {"bounce": False},
+    "albedo_step joint": {"albedo_step": "joint"}, "sun_regularization 0.05": {"sun_regularization": 0.05},
+    "albedo_step joint, sun_regularization 0.05": {"albedo_step": "joint", "sun_regularization": 0.05},
 }
 REAL_ABLATIONS = ("defaults", "no temporal filter", "no exposure gain")  # also run on the real recordings
 HOLDOUT = 0.2
@@ -116,7 +118,8 @@ def main() -> int:
     ap.add_argument("--ablations", action="store_true", help="also run one-change ablations of the defaults")
     args = ap.parse_args()
 
-    cases = [("demo (data/demo, 10 frames)", REPO / "data" / "demo", 10, "committed (data/demo/README.md)")]
+    cases = [("demo (data/demo, 10 frames)", REPO / "data" / "demo", 10, "committed (data/demo/README.md)"),
+             ("demo (all 40 frames)", REPO / "data" / "demo", 40, "committed (data/demo/README.md)")]
     for kind in SCENE_KINDS:
         path, cmd = ensure_synth(Path(args.synth_dir), kind, args.frames, args.size, args.spp)
         cases.append((kind, path, args.frames, f"`{cmd}`"))

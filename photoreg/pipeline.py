@@ -6,6 +6,7 @@ noise at no extra cost) and a sample is used only when its whole box is usable.
 """
 from __future__ import annotations
 
+import dataclasses
 import time
 from contextlib import contextmanager
 
@@ -26,6 +27,8 @@ from .lighting.temporal import FilterConfig, LightingFilter
 from .preprocess import Prepared, prepare
 from .recon.fusion import FusionConfig, TSDFVolume
 from .types import Frame, FrameResult, Intrinsics, Lighting, SolveDiagnostics
+
+SAMPLE_SURPLUS = 1.5  # candidates checked per sample kept (the depth agreement test drops a few)
 
 
 class Pipeline:
@@ -79,8 +82,10 @@ class Pipeline:
         return frame.pose, []
 
     def _samples(self, prep: Prepared, maps, pose: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Radiance (box average), world points and normals at the usable sample pixels whose fused
-        surface agrees with the frame's depth (photoreg.lighting.samples)."""
+        """Radiance (box average), world points and normals at usable sample pixels whose fused surface
+        agrees with the frame's depth (photoreg.lighting.samples): at most lighting.max_samples of them, a
+        random subset as the solve would take. Only a surplus of candidates is checked, so the cost does
+        not grow with the resolution (stride 1 at 640x480: 8000 samples of 300000 pixels)."""
         lc = self.session.lighting
         st = lc.stride
         if st > 1:
@@ -90,10 +95,20 @@ class Pipeline:
             usable = usable > 0.999
         else:
             radiance, usable = prep.linear, prep.usable
-        keep = usable & maps.valid & agreement(prep.depth, self.intrinsics, pose, st, maps.depth, maps.normal,
-                                               lc.max_normal_angle,
-                                               lc.max_depth_gap_voxels * self.session.reconstruction.voxel_size)
-        return radiance[keep], maps.vertex[keep], maps.normal[keep]
+        ws = maps.valid.shape[1]
+        cand = np.flatnonzero(usable & maps.valid)
+        cap = self.solver_cfg.max_samples
+        rng = np.random.default_rng(self.solver_cfg.seed)
+        if cap is not None and cand.size > cap * SAMPLE_SURPLUS:
+            cand = np.sort(rng.choice(cand, int(cap * SAMPLE_SURPLUS), replace=False))
+        r, c = np.divmod(cand, ws)
+        ok = np.flatnonzero(agreement(prep.depth, self.intrinsics, pose, r * st, c * st, maps.depth[r, c],
+                                      maps.normal[r, c], max(2, st), lc.max_normal_angle,
+                                      lc.max_depth_gap_voxels * self.session.reconstruction.voxel_size))
+        if cap is not None and ok.size > cap:
+            ok = np.sort(rng.choice(ok, cap, replace=False))
+        r, c = r[ok], c[ok]
+        return radiance[r, c], maps.vertex[r, c], maps.normal[r, c]
 
     def _with_sun(self, grid, radiance, transfer, points, normals, visible, sol, previous, terms: list[Term]):
         """(sun, solution): the frame's dominant light (photoreg.lighting.sun) and the joint solve with it, or
@@ -113,7 +128,9 @@ class Pipeline:
         disc = disc_rays(sun, self.sun.cfg.rays).astype(np.float32)
         light = sun_term(sun, visibility(grid, points, normals, disc, offset, lc.ray_length), normals, disc,
                          self.solver_cfg.fit_bands)
-        joint = solve(radiance, transfer, normals, visible, self.solver_cfg, points=points, reference=previous,
+        # the SH part of the joint solve holds only what the traced light leaves: regularised more (config.py)
+        cfg = dataclasses.replace(self.solver_cfg, regularization=lc.sun_regularization)
+        joint = solve(radiance, transfer, normals, visible, cfg, points=points, reference=previous,
                       terms=terms + [light])
         if not joint.terms["sun"] @ sh.LUMINANCE > 0:
             return None, sol

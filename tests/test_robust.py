@@ -6,6 +6,7 @@ give a finite answer, diagnostics that flag weakness, and accuracy where accurac
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -100,6 +101,28 @@ def test_regions_recover_lighting_where_one_albedo_fails():
     order = [int(np.argmin(np.abs(np.log(e / e[1]) - np.log(truth / truth[:, 1:2])).sum(axis=1))) for e in est]
     ratio = est / truth[order]
     assert np.allclose(ratio / ratio.mean(axis=0), 1, atol=0.05)
+
+
+def test_albedos_and_lighting_converge_jointly():
+    """Exact two-factor data (I = rho_region * R.F, the light in the solve's own bands): the joint
+    Gauss-Newton step in F and the albedos reaches the exact answer in a few alternations (alternating
+    closed-form albedos and F alone still drifts along the albedo-versus-light direction), and the
+    alternation stops early once F stops moving."""
+    rng = np.random.default_rng(5)
+    light = np.zeros((3, 64))
+    light[:, :9] = sh.truncate(sun_sky(bands=8), 3)
+    radiance, tr, nrm, vis, rho, _ = scene(rng, light=light)
+    truth = np.array([[0.55, 0.45, 0.35], [0.8, 0.2, 0.15], [0.15, 0.6, 0.2], [0.2, 0.3, 0.8]])
+    cfg = SolverConfig(**{**ROBUST, "loss": "none", "regularization": 1e-6, "iterations": 5, "tolerance": 1e-9,
+                          "albedo_step": "joint"})
+    sol = solve(radiance, tr, nrm, vis, cfg)
+    est = np.array(sol.albedo)
+    order = [int(np.argmin(np.abs(np.log(e / e[1]) - np.log(truth / truth[:, 1:2])).sum(axis=1))) for e in est]
+    ratio = est / truth[order]
+    assert np.allclose(ratio / ratio[0], 1, atol=1e-3)
+    assert shape_error(sol.lighting.sh, light) < 1e-3
+    loose = solve(radiance, tr, nrm, vis, dataclasses.replace(cfg, iterations=50, tolerance=1e-3))
+    assert np.allclose(loose.lighting.sh, sol.lighting.sh, rtol=0, atol=1e-2 * np.abs(sol.lighting.sh).max())
 
 
 def test_robust_loss_resists_outliers():
@@ -299,17 +322,23 @@ def test_flicker_metric():
 def test_sample_agreement_with_depth():
     k = Intrinsics(40, 30, 30.0, 30.0, 19.5, 14.5)
     depth = np.full((30, 40), 2.0, dtype=np.float32)  # fronto-parallel wall 2 m ahead
-    n = depth_normals(depth, k, np.arange(0, 30, 2), np.arange(0, 40, 2), 2)
+    rows, cols = np.meshgrid(np.arange(0, 30, 2), np.arange(0, 40, 2), indexing="ij")
+    n = depth_normals(depth, k, rows, cols, 2)
     inner = n[2:-2, 2:-2]
     assert np.allclose(inner, [0, 0, -1]) and not n[0].any() and not n[:, 0].any()  # border: no normal
     pose = np.eye(4)
     surf_depth = np.full((15, 20), 2.0)
     surf_normal = np.tile([0.0, 0.0, -1.0], (15, 20, 1))
-    ok = agreement(depth, k, pose, 2, surf_depth, surf_normal, 30.0, 0.03)
+    ok = agreement(depth, k, pose, rows, cols, surf_depth, surf_normal, 2, 30.0, 0.03)
     assert ok[2:-2, 2:-2].all() and not ok[0].any()
     tilted = np.tile(unit([0.0, 0.8, -0.6]), (15, 20, 1))  # 53 degrees off
-    assert not agreement(depth, k, pose, 2, surf_depth, tilted, 30.0, 0.03).any()
-    assert not agreement(depth, k, pose, 2, surf_depth + 0.1, surf_normal, 30.0, 0.03).any()
+    assert not agreement(depth, k, pose, rows, cols, surf_depth, tilted, 2, 30.0, 0.03).any()
+    assert not agreement(depth, k, pose, rows, cols, surf_depth + 0.1, surf_normal, 2, 30.0, 0.03).any()
+    # A pixel list gives the same answers as the grid it is taken from.
+    pick = np.array([0, 37, 151, 299])
+    listed = agreement(depth, k, pose, rows.ravel()[pick], cols.ravel()[pick], surf_depth.ravel()[pick],
+                       surf_normal.reshape(-1, 3)[pick], 2, 30.0, 0.03)
+    assert np.array_equal(listed, ok.ravel()[pick])
 
 
 @settings(max_examples=40, deadline=None)
@@ -414,6 +443,34 @@ def test_pipeline_hard_frames_are_finite_weak_and_named():
     assert any("saturated" in n for n in results[5].diagnostics.notes)
     for i in (3, 9):  # good frames (a box on a floor: 4 normals, so rank-deficient at 5 bands): the light is found
         assert metrics.direction_error_deg(results[i].lighting.sh, ground_truth_sh()) < 35, i
+
+
+def test_pipeline_samples_are_capped_random_and_checked():
+    """At stride 1 the pipeline hands the transfer at most max_samples samples, drawn over the whole
+    usable image (not its first rows), each passing the depth agreement test."""
+    from scenes import look_at, render
+
+    from photoreg.kernels.raycast import raycast_surface
+    from photoreg.lighting.samples import agreement
+    from photoreg.preprocess import prepare
+    from photoreg.types import Frame
+
+    k = Intrinsics(128, 96, 112.0, 112.0, 63.5, 47.5, 5000.0)
+    pipe = _pipeline(k, stride=1, max_samples=300)
+    pose = look_at(np.array([0.0, -1.2, 0.8]), np.array([0.0, 0.0, 0.1]))
+    color, depth = render(k, pose)
+    frame = Frame(0, 0.0, color, depth, k, pose, source="synthetic")
+    prep, pose, _ = pipe.observe(frame, {})
+    maps = raycast_surface(pipe.volume.dense_grid(), k, pose, 0.1, 5.0, stride=1)
+    radiance, points, normals = pipe._samples(prep, maps, pose)
+    assert len(points) == 300 and np.isfinite(radiance).all()
+    cam = (points - pose[:3, 3]) @ pose[:3, :3]                     # world -> camera
+    rows = np.round(cam[:, 1] / cam[:, 2] * k.fy + k.cy).astype(int)
+    cols = np.round(cam[:, 0] / cam[:, 2] * k.fx + k.cx).astype(int)
+    usable = np.flatnonzero(prep.usable & maps.valid) // k.width
+    assert rows.min() < np.percentile(usable, 10) and rows.max() > np.percentile(usable, 90)  # spread over the image
+    assert agreement(prep.depth, k, pose, rows, cols, maps.depth[rows, cols], maps.normal[rows, cols], 2,
+                     pipe.session.lighting.max_normal_angle, 0.03).mean() > 0.95
 
 
 @pytest.mark.slow

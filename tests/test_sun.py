@@ -174,3 +174,29 @@ def test_demo_recording_light_matches_the_generators_sun(tmp_path):
             found.append(math.degrees(math.acos(min(1.0, float(np.dot(d["direction"], true))))))
     assert len(found) >= 3, found
     assert max(found) < 6.0, found
+
+
+def test_joint_solve_with_the_traced_light_uses_its_own_regularization(monkeypatch):
+    """The SH part of the joint solve (with a traced light) is regularised by lighting.sun_regularization,
+    the solve without the light by lighting.regularization (config.py says why: on the generated tabletop
+    1e-2 in the joint solve left the irradiance too flat)."""
+    import photoreg.pipeline as pipeline
+    from photoreg.config import Session
+    from photoreg.io.recording import iter_frames, open_recording
+
+    used = []
+    real_solve = pipeline.solve
+
+    def spy(*args, **kw):
+        used.append((any(t.name == "sun" for t in kw.get("terms") or []), args[4].regularization))
+        return real_solve(*args, **kw)
+
+    monkeypatch.setattr(pipeline, "solve", spy)
+    s = Session()
+    s.recording.path = str(REPO / "data" / "demo")
+    s.lighting.regularization, s.lighting.sun_regularization = 0.01, 0.07
+    rec = open_recording(s.recording.path)
+    pipe = pipeline.Pipeline(s, rec.intrinsics)
+    for frame in iter_frames(rec, [0]):
+        assert pipe.process(frame).diagnostics.sun is not None
+    assert sorted(set(used)) == [(False, 0.01), (True, 0.07)], used

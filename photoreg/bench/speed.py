@@ -32,7 +32,7 @@ def device_name(device: str) -> str:
 
 
 def bench_recording(session: Session, warmup: int = 2) -> dict:
-    """Run the pipeline over the session's frames; mean/p95 ms per stage after warm-up."""
+    """Run the pipeline over the session's frames; mean/median/p95 ms per stage after warm-up."""
     import open3d as o3d
     import warp as wp
 
@@ -64,7 +64,10 @@ def bench_recording(session: Session, warmup: int = 2) -> dict:
         "ray_length": L.ray_length, "sun": L.sun, "bounce": L.bounce,
         "ms_mean": {s: round(float(np.mean([t[s] for t in timings])), 3) for s in stages},
         "ms_p95": {s: round(float(np.percentile([t[s] for t in timings], 95)), 3) for s in stages},
+        "ms_median": {s: round(float(np.median([t[s] for t in timings])), 3) for s in stages},
         "frames_per_s": round(1000.0 / float(np.mean([t["total"] for t in timings])), 3),
+        # the typical frame: one slow frame (a first allocation, a kernel built late) moves the mean only
+        "frames_per_s_median": round(1000.0 / float(np.median([t["total"] for t in timings])), 3),
     }
 
 
@@ -87,7 +90,8 @@ def speed_command(args) -> int:
     res = bench_recording(s, warmup=args.warmup)
     stages = "  ".join(f"{k} {v:.1f}" for k, v in res["ms_mean"].items())
     print(f"{res['device_name']} ({res['device']}, {res['threads']} CPU threads), {res['size']} stride {res['stride']} rays {res['rays']} "
-          f"bands {res['bands']}, sun {res['sun']}, bounce {res['bounce']}: {res['frames_per_s']} frames/s\n  mean ms: {stages}")
+          f"bands {res['bands']}, sun {res['sun']}, bounce {res['bounce']}: {res['frames_per_s']} frames/s "
+          f"(median frame: {res['frames_per_s_median']})\n  mean ms: {stages}")
     if args.json_out:
         write_json(args.json_out, res)
     return 0

@@ -44,6 +44,11 @@ def colour_features(rgb: np.ndarray, with_intensity: bool, floor: float = 1e-3) 
     return np.stack(f, axis=1)
 
 
+def _sums(index: np.ndarray, values: np.ndarray, n: int) -> np.ndarray:
+    """Per-index column sums (n, d) of values (N, d) (np.add.at, a bincount per column: much faster)."""
+    return np.stack([np.bincount(index, weights=v, minlength=n) for v in values.T], axis=1)
+
+
 def cluster(features: np.ndarray, bandwidth, min_count: int) -> np.ndarray:
     """Labels (N,) of histogram-mode clusters of `features` (N, d), largest cluster 0, -1 = none.
 
@@ -76,14 +81,11 @@ def cluster(features: np.ndarray, bandwidth, min_count: int) -> np.ndarray:
         peak &= (smooth > nb) | ((smooth == nb) & (o > 0))  # ties: the lower key wins
     if not peak.any():
         return labels
-    cell_centres = np.zeros((len(keys), d))
-    np.add.at(cell_centres, inverse, z)
-    centres = cell_centres[peak] / counts[peak][:, None]
+    centres = _sums(inverse, z, len(keys))[peak] / counts[peak][:, None]
     for _ in range(2):  # k-means refinement
         dist = ((z[:, None, :] - centres[None]) ** 2).sum(axis=2)
         near = dist.argmin(axis=1)
-        sums = np.zeros_like(centres)
-        np.add.at(sums, near, z)
+        sums = _sums(near, z, len(centres))
         num = np.bincount(near, minlength=len(centres))
         centres = np.where(num[:, None] > 0, sums / np.maximum(num, 1)[:, None], centres)
     dist = ((z[:, None, :] - centres[None]) ** 2).sum(axis=2)

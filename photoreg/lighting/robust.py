@@ -2,13 +2,16 @@
 
 Model: I_i = rho_{r(i)} * (R_i . F) per channel, with r(i) the albedo region of sample i
 (photoreg.lighting.albedo; one region when cfg.albedo = "single", which is the paper's model).
-The fit alternates, cfg.iterations times:
+The fit alternates, at most cfg.iterations times and until F moves less than cfg.tolerance (relative):
   1. F given albedos and weights: per channel the weighted Tikhonov system
      (G_c + lam_c I) f = g_c + lam_c f_prior, G_c = sum_i w_i rho_ic^2 R_i R_i^T, g_c = sum_i w_i rho_ic I_ic R_i,
-     lam_c = regularization * trace(G_c) / K (relative, as in the paper's solver);
+     lam_c = regularization * trace(G_c) / K (relative, as in the paper's solver); with cfg.albedo_step
+     "joint" taken as a joint Gauss-Newton step in F and the albedos of all regions but the largest
+     (_with_albedo_columns): alternating F and albedos alone creeps along the direction in which brighter
+     albedos trade against more light;
   2. albedos given F, in closed form per region and channel: rho = sum w I S / sum w S^2 (S = R.F),
      then the scale fix (albedo.reference_scale) moves the common factor into F; regions whose
-     albedos the data cannot tell apart are merged. After a third of the iterations the regions are
+     albedos the data cannot tell apart are merged. At the third alternation the regions are
      found again on the albedo estimates I / S (shading divided out; albedo.py);
   3. robust weights from the luminance residuals e_i scaled by 1.4826 * MAD (cfg.loss: Huber or
      Tukey's biweight): specular highlights, unexplained shadows, colour-depth misalignment and stray
@@ -51,7 +54,7 @@ from .solver import SolverConfig, conditioning, normal_weights, select_samples
 
 TUNING = {"huber": 1.345, "tukey": 4.685}  # 95% efficiency at Gaussian noise
 MERGE_LOG_TOLERANCE = 0.1   # regions whose albedos differ by < ~10% in every channel are one region
-SECOND_PASS = 1 / 3         # share of the iterations after which regions are found again on albedo estimates
+SECOND_PASS = 2             # iteration at which regions are found again on albedo estimates
 FOLDS = 5                   # K-fold count of select = "holdout"
 FOLD_CELL = 0.1             # metres: spatial fold cells, so held-out samples are not neighbours of fitted ones
 AXES = {"+x": (1, 0, 0), "-x": (-1, 0, 0), "+y": (0, 1, 0), "-y": (0, -1, 0), "+z": (0, 0, 1), "-z": (0, 0, -1)}
@@ -142,32 +145,59 @@ def bounce_term(transfer: np.ndarray, radiance: np.ndarray) -> Term:
     return Term("bounce", sh.blocked_share(transfer)[:, 0], upper=upper)
 
 
-def _tikhonov(G: np.ndarray, g: np.ndarray, lam_rel: float, prior: np.ndarray) -> tuple[np.ndarray, float]:
-    """argmin f^T G f - 2 g^T f + lam |f - prior|^2, lam = lam_rel * trace(G) / K; zero-information
-    directions keep the prior. Returns (f, lam)."""
-    k = G.shape[0]
-    lam = lam_rel * float(np.trace(G)) / k
+def _factor(G: np.ndarray, lam_rel: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Eigen-factors of the Tikhonov systems G + lam I (G (..., K, K), one per channel), lam = lam_rel *
+    trace(G) / K: (V, 1 / (e + lam) with 0 for zero-information directions, lam (...)). One factor serves
+    every right-hand side of a channel."""
+    k = G.shape[-1]
+    lam = lam_rel * np.trace(G, axis1=-2, axis2=-1) / k
     e, V = np.linalg.eigh(G)
     e = np.maximum(e, 0.0)
-    tiny = max(float(e.max()), 0.0) * k * 1e-13
-    y = V.T @ (g - G @ prior)
-    denom = e + lam
-    step = np.divide(y, denom, out=np.zeros_like(y), where=(e > tiny) & (denom > 0))
-    return prior + V @ step, lam
+    tiny = np.maximum(e.max(axis=-1, keepdims=True), 0.0) * k * 1e-13
+    denom = e + lam[..., None]
+    inv = np.divide(1.0, denom, out=np.zeros_like(denom), where=(e > tiny) & (denom > 0))
+    return V, inv, lam
+
+
+@dataclass
+class _Regions:
+    """The samples sorted by albedo region (labels -1 left out), so that the per-region sums of the IRLS
+    iterations are contiguous slices; built once per label assignment, then grams(w) for each new weighting."""
+
+    A: np.ndarray        # (n, K') sorted rows of the design
+    I: np.ndarray        # (n, 3) their radiance
+    idx: np.ndarray      # (n,) their indices in the unsorted samples
+    bounds: np.ndarray   # (m + 1,) region r is rows bounds[r]:bounds[r + 1]
+
+    @classmethod
+    def of(cls, A: np.ndarray, I: np.ndarray, labels: np.ndarray, m: int) -> "_Regions":
+        idx = np.flatnonzero(labels >= 0)
+        idx = idx[np.argsort(labels[idx], kind="stable")]
+        return cls(np.ascontiguousarray(A[idx]), I[idx], idx, np.searchsorted(labels[idx], np.arange(m + 1)))
+
+    def grams(self, w: np.ndarray):
+        """Per-region sums G_m = sum w R R^T (m, K, K), h_m = sum w I R (m, 3, K) and c0 = sum w I^2 (3,)
+        for sample weights w (unsorted, (N,))."""
+        m, k = len(self.bounds) - 1, self.A.shape[1]
+        ws = w[self.idx]
+        Aw = self.A * ws[:, None]
+        G, h = np.zeros((m, k, k)), np.zeros((m, 3, k))
+        for r in range(m):
+            a, b = self.bounds[r], self.bounds[r + 1]
+            G[r] = Aw[a:b].T @ self.A[a:b]
+            h[r] = self.I[a:b].T @ Aw[a:b]
+        return G, h, (ws[:, None] * self.I * self.I).sum(axis=0)
 
 
 def _grams(A: np.ndarray, I: np.ndarray, w: np.ndarray, labels: np.ndarray, m: int):
-    """Per-region sums G_m = sum w R R^T (m, K, K), h_m = sum w I R (m, 3, K) and c0 = sum w I^2 (3,)."""
-    k = A.shape[1]
-    G = np.zeros((m, k, k))
-    h = np.zeros((m, 3, k))
-    for r in range(m):
-        sel = labels == r
-        Aw = A[sel] * w[sel, None]
-        G[r] = Aw.T @ A[sel]
-        h[r] = (Aw.T @ I[sel]).T
-    c0 = (w[:, None] * I * I)[labels >= 0].sum(axis=0)
-    return G, h, c0
+    """Per-region sums of _Regions.grams for one weighting."""
+    return _Regions.of(A, I, labels, m).grams(w)
+
+
+def _counts(labels: np.ndarray, w: np.ndarray, m: int) -> np.ndarray:
+    """Total weight of each of the m regions (labels -1 count for none)."""
+    sel = labels >= 0
+    return np.bincount(labels[sel], weights=w[sel], minlength=m)
 
 
 def _channel_systems(Gm, hm, c0, rho):
@@ -177,21 +207,44 @@ def _channel_systems(Gm, hm, c0, rho):
     return G, g, c0
 
 
+def _with_albedo_columns(G, g, Gm, hm, rho, F):
+    """The F step's system (3, K', K'), (3, K') augmented for a joint Gauss-Newton step in F and the albedos of
+    regions 1..m-1 around (F, rho) (region 0, the largest, keeps its albedo: it fixes the scale). Linearised,
+    rho_r (a.F) ~ rho_r0 (a.F) + (rho_r - rho_r0) s with s = a.F0: the albedo columns are s, with target
+    I + rho_r0 s (without it F still moved 1% per alternation after 12 on the generated tabletop). Returns
+    the augmented (G, g); the new columns are unregularised extra terms with rho >= 0."""
+    GF = np.einsum("mij,cj->mci", Gm[1:], F)          # (m-1, 3, K'): sum_r w a s
+    D = np.einsum("mci,ci->cm", GF, F)                 # (3, m-1): sum_r w s^2
+    r1 = rho[1:].T                                     # (3, m-1)
+    U = np.transpose(GF, (1, 2, 0)) * r1[:, None, :]   # (3, K', m-1)
+    n, q = G.shape[1], rho.shape[0] - 1
+    Ga = np.zeros((3, n + q, n + q))
+    Ga[:, :n, :n], Ga[:, :n, n:], Ga[:, n:, :n] = G, U, np.transpose(U, (0, 2, 1))
+    Ga[:, n + np.arange(q), n + np.arange(q)] = D
+    ga = np.concatenate([g + np.einsum("cim,cm->ci", U, r1), np.einsum("mci,ci->cm", hm[1:], F) + r1 * D], axis=1)
+    return Ga, ga
+
+
 def _solve_channels(G, g, lam_rel, prior, n_extra: int = 0, upper=None):
     """Per-channel Tikhonov solutions (3, K) and absolute lambdas (3,). The system's last n_extra columns are
     extra terms: unregularised, 0 <= e <= upper (n_extra, 3) (active set: a negative e leaves, one above its
     bound is fixed there), the SH part f = f0 - H U e eliminated exactly (f0 the SH-only solution, H the
     regularised inverse, U the coupling); returned as F's last n_extra coefficients."""
-    if not n_extra:
-        out = [_tikhonov(G[c], g[c], lam_rel, prior[c]) for c in range(3)]
-        return np.array([f for f, _ in out]), np.array([lam for _, lam in out])
     k = G.shape[1] - n_extra
-    F, lams = np.zeros((3, k + n_extra)), np.zeros(3)
+    Gs = G[:, :k, :k]
+    V, inv, lams = _factor(Gs, lam_rel)
+
+    def regularised_inverse(rhs):  # (3, k, j) -> (G_c + lam_c I)^+ rhs_c per channel
+        return V @ (inv[..., None] * (np.swapaxes(V, 1, 2) @ rhs))
+
+    f0 = prior + regularised_inverse((g[:, :k] - np.einsum("cij,cj->ci", Gs, prior))[..., None])[..., 0]
+    if not n_extra:
+        return f0, lams
+    HUs = regularised_inverse(G[:, :k, k:])
+    F = np.zeros((3, k + n_extra))
     for c in range(3):
-        U = G[c, :k, k:]
-        f0, lams[c] = _tikhonov(G[c, :k, :k], g[c, :k], lam_rel, prior[c])
-        HU = np.stack([_tikhonov(G[c, :k, :k], U[:, j], lam_rel, np.zeros(k))[0] for j in range(n_extra)], axis=1)
-        M, r = G[c, k:, k:] - U.T @ HU, g[c, k:] - U.T @ f0
+        U, HU = G[c, :k, k:], HUs[c]
+        M, r = G[c, k:, k:] - U.T @ HU, g[c, k:] - U.T @ f0[c]
         e, active = np.zeros(n_extra), np.diag(M) > 1e-12 * np.maximum(np.diag(G[c, k:, k:]), 1e-300)
         ub = np.full(n_extra, np.inf) if upper is None else upper[:, c]
         fixed = np.zeros(n_extra, dtype=bool)
@@ -210,7 +263,7 @@ def _solve_channels(G, g, lam_rel, prior, n_extra: int = 0, upper=None):
             j = np.flatnonzero(over)[int(np.argmax((e - ub)[over]))]
             fixed[j], e[j] = True, ub[j]
         e = np.clip(e, 0.0, ub)
-        F[c, :k], F[c, k:] = f0 - HU @ e, e
+        F[c, :k], F[c, k:] = f0[c] - HU @ e, e
     return F, lams
 
 
@@ -226,14 +279,14 @@ def _prior_scale(F: np.ndarray, prior: np.ndarray, G: np.ndarray) -> np.ndarray 
     return s
 
 
-def _albedo_step(A, I, w, labels, m, F, cfg: SolverConfig, prior=None, G=None, term_sh=None):
-    """Closed-form region albedos given F, scale-fixed by the prior (when it has an observed component)
-    or else by cfg's albedo_reference rule and reference_albedo; returns (rho (m, 3), per-channel scale to move into F).
-    With extra terms (term_sh: their SH rows) the prior is compared with F's SH equivalent (_as_sh)."""
-    sel = labels >= 0
-    lab, ws, S = labels[sel], w[sel, None], A[sel] @ F.T
-    num = np.stack([np.bincount(lab, weights=c, minlength=m) for c in (ws * I[sel] * S).T], axis=1)
-    den = np.stack([np.bincount(lab, weights=c, minlength=m) for c in (ws * S * S).T], axis=1)
+def _albedo_step(Gm, hm, F, counts, cfg: SolverConfig, prior=None, G=None, term_sh=None):
+    """Closed-form region albedos given F from the per-region sums of _grams (rho = sum w I S / sum w S^2 with
+    S = A.F, i.e. h.F / F^T G F), scale-fixed by the prior (when it has an observed component) or else by
+    cfg's albedo_reference rule and reference_albedo over the regions' weights `counts`; returns
+    (rho (m, 3), per-channel scale to move into F). With extra terms (term_sh: their SH rows) the prior is
+    compared with F's SH equivalent (_as_sh)."""
+    num = np.einsum("mci,ci->mc", hm, F)
+    den = np.einsum("ci,mij,cj->mc", F, Gm, F)
     rho = np.where((den > 0) & (num > 0), num / np.maximum(den, 1e-300), np.nan)
     ok = np.isfinite(rho)
     fill = np.array([np.median(rho[ok[:, c], c]) if ok[:, c].any() else 1.0 for c in range(3)])
@@ -242,8 +295,7 @@ def _albedo_step(A, I, w, labels, m, F, cfg: SolverConfig, prior=None, G=None, t
     if prior is not None and prior.any():
         scale = _prior_scale(_as_sh(F, term_sh), prior, G[:, :prior.shape[1], :prior.shape[1]])
     if scale is None:
-        scale = alb.reference_scale(rho, np.bincount(labels[sel], weights=w[sel], minlength=m),
-                                    cfg.albedo_reference, cfg.reference_albedo)
+        scale = alb.reference_scale(rho, counts, cfg.albedo_reference, cfg.reference_albedo)
     return rho / scale, scale
 
 
@@ -396,28 +448,45 @@ def solve(radiance, transfer, normals, visible, cfg: SolverConfig, prior=None, m
     F = np.hstack([prior_fit, np.zeros((3, p))])
     iterations = cfg.iterations if (cfg.loss != "none" or cfg.albedo == "regions") else 1
     c = cfg.loss_scale or TUNING.get(cfg.loss, 1.0)
+    F_last, regions = F, _Regions.of(A, I, labels, m)
     for it in range(iterations):
         w = w0 * rw * (labels >= 0)
-        G, g, c0 = _channel_systems(*_grams(A, I, w, labels, m), rho)
-        F, _ = _solve_channels(G, g, cfg.regularization, prior_fit, p, ub)
+        Gm, hm, c0 = regions.grams(w)
+        G, g, c0 = _channel_systems(Gm, hm, c0, rho)
+        q = m - 1 if cfg.albedo == "regions" and cfg.albedo_step == "joint" and F.any() else 0
+        if q:
+            G, g = _with_albedo_columns(G, g, Gm, hm, rho, F)
+        ubq = None if ub is None and not q else np.vstack([ub if ub is not None else np.zeros((0, 3)),
+                                                          np.full((q, 3), np.inf)])
+        F, _ = _solve_channels(G, g, cfg.regularization, prior_fit, p + q, ubq)
+        F = F[:, :F.shape[1] - q]
         if cfg.albedo == "regions":
-            if it == int(iterations * SECOND_PASS) and iterations > 2:
+            if it == SECOND_PASS and iterations > SECOND_PASS + 1:
                 S = np.maximum((A @ F.T) @ sh.LUMINANCE, 1e-12)
                 ratio = np.maximum(I @ sh.LUMINANCE, 1e-12) / S
                 labels = alb.split_by_intensity(labels, np.log(ratio), cfg.intensity_bandwidth, min_count)
                 m = int(labels.max()) + 1
-            rho, scale = _albedo_step(A, I, w0 * rw, labels, m, F, cfg, ref_F, G, tsh)
+                w, regions = w0 * rw * (labels >= 0), _Regions.of(A, I, labels, m)
+                Gm, hm, c0 = regions.grams(w)
+            rho, scale = _albedo_step(Gm, hm, F, _counts(labels, w, m), cfg, ref_F, G, tsh)
             F = F * scale[:, None]
             if m > 1:
-                labels, m = alb.merge_similar(labels, rho, MERGE_LOG_TOLERANCE)
-                rho, scale = _albedo_step(A, I, w0 * rw, labels, m, F, cfg, ref_F, G, tsh)
-                F = F * scale[:, None]
+                merged, m_merged = alb.merge_similar(labels, rho, MERGE_LOG_TOLERANCE)
+                if not np.array_equal(merged, labels):
+                    labels, m = merged, m_merged
+                    w, regions = w0 * rw * (labels >= 0), _Regions.of(A, I, labels, m)
+                    Gm, hm, c0 = regions.grams(w)
+                    rho, scale = _albedo_step(Gm, hm, F, _counts(labels, w, m), cfg, ref_F, G, tsh)
+                    F = F * scale[:, None]
         if cfg.loss != "none":
             pred = rho[np.maximum(labels, 0)] * (A @ F.T)
             r = (I - pred) @ sh.LUMINANCE
             active = w0 * (labels >= 0)
             rw = loss_weights(r / robust_scale(r, active), cfg.loss, c)
-
+        moved = np.linalg.norm(F - F_last) / max(float(np.linalg.norm(F)), 1e-300)
+        F_last = F
+        if it > SECOND_PASS and moved < cfg.tolerance:
+            break
     w = w0 * rw * (labels >= 0)
     if cfg.select != "fixed":
         bands, lam_rel = select_order(A, I, w, labels, rho, cfg, prior_fit, pts)

@@ -19,10 +19,10 @@ from ..types import Intrinsics
 
 
 def depth_normals(depth: np.ndarray, intr: Intrinsics, rows: np.ndarray, cols: np.ndarray, step: int) -> np.ndarray:
-    """Camera-frame unit normals (len(rows), len(cols), 3) of the depth map at the pixel grid
-    rows x cols, facing the camera; zero where a neighbour `step` pixels away is missing or off the image."""
+    """Camera-frame unit normals (*rows.shape, 3) of the depth map at the pixels (rows, cols) (integer arrays
+    of one shape), facing the camera; zero where a neighbour `step` pixels away is missing or off the image."""
     h, w = depth.shape
-    r, c = np.meshgrid(rows, cols, indexing="ij")
+    r, c = np.asarray(rows), np.asarray(cols)
 
     def point(rr, cc):
         inside = (rr >= 0) & (rr < h) & (cc >= 0) & (cc < w)
@@ -40,15 +40,14 @@ def depth_normals(depth: np.ndarray, intr: Intrinsics, rows: np.ndarray, cols: n
     return -n  # x-right, y-down cross product points away from the camera; flip to face it
 
 
-def agreement(depth: np.ndarray, intr: Intrinsics, pose: np.ndarray, stride: int, surface_depth: np.ndarray,
-              surface_normal: np.ndarray, max_angle_deg: float, max_depth_gap: float) -> np.ndarray:
-    """(h, w) bool at the strided sample pixels (r * stride, c * stride): the ray-cast surface
-    (camera z `surface_depth`, world normals `surface_normal`) agrees with the frame's depth map
-    (HxW metres, 0 invalid) within `max_depth_gap` metres and `max_angle_deg` in normal direction."""
-    hs, ws = surface_depth.shape
-    rows, cols = np.arange(hs) * stride, np.arange(ws) * stride
-    z = depth[np.ix_(rows, cols)]
-    n_depth = depth_normals(depth, intr, rows, cols, max(2, stride))
+def agreement(depth: np.ndarray, intr: Intrinsics, pose: np.ndarray, rows: np.ndarray, cols: np.ndarray,
+              surface_depth: np.ndarray, surface_normal: np.ndarray, step: int, max_angle_deg: float,
+              max_depth_gap: float) -> np.ndarray:
+    """Bool per pixel (rows, cols): the ray-cast surface there (camera z `surface_depth`, world normal
+    `surface_normal` (..., 3)) agrees with the frame's depth map (HxW metres, 0 invalid) within
+    `max_depth_gap` metres and `max_angle_deg` in normal direction (depth-map normals over `step` pixels)."""
+    z = depth[rows, cols]
+    n_depth = depth_normals(depth, intr, rows, cols, step)
     n_surface = surface_normal @ np.asarray(pose, dtype=np.float64)[:3, :3]  # world -> camera
     cos = (n_depth * n_surface).sum(axis=-1)
     return (np.abs(z - surface_depth) <= max_depth_gap) & (z > 0) & (cos >= math.cos(math.radians(max_angle_deg)))

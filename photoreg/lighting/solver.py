@@ -37,6 +37,7 @@ MODES = ("rgb", "white")
 LOSSES = ("none", "huber", "tukey")
 ALBEDOS = ("single", "regions")
 ALBEDO_REFERENCES = ("max", "largest", "mean")
+ALBEDO_STEPS = ("alternate", "joint")
 SELECTIONS = ("fixed", "gcv", "holdout", "aic", "bic")
 
 
@@ -67,9 +68,11 @@ class SolverConfig:
     # --- robust settings (photoreg.lighting.robust); the defaults here are the paper's solver ---
     loss: str = "none"                 # "none" | "huber" | "tukey": IRLS weights on luminance residuals
     loss_scale: float | None = None    # tuning constant in robust sigmas (None: 1.345 huber, 4.685 tukey)
-    iterations: int = 12               # alternations of albedo, lighting and robust weights
+    iterations: int = 12               # alternations of albedo, lighting and robust weights (at most) ...
+    tolerance: float = 1e-2            # ... stopping once F moves less than this (relative) per alternation
     albedo: str = "single"             # "single" | "regions": one albedo, or one per region found in the data
     albedo_reference: str = "max"      # scale fix: "max" (per-channel max over regions), "largest", "mean"
+    albedo_step: str = "alternate"     # "alternate" F and albedos, or a "joint" Gauss-Newton step (robust.py)
     reference_albedo: float = 1.0      # ... whose albedo is taken to be this (absolute scale of F)
     chroma_bandwidth: float = 0.08     # region clustering cell in log-chromaticity (best of 0.05/0.08/0.12)
     intensity_bandwidth: float = 0.5   # ... and in log albedo (second pass, shading removed)
@@ -90,6 +93,7 @@ class SolverConfig:
             raise ValueError("grid_bins >= 1, density_bandwidth > 0 and regularization >= 0 are required")
         for name, value, choices in (("loss", self.loss, LOSSES), ("albedo", self.albedo, ALBEDOS),
                                      ("albedo_reference", self.albedo_reference, ALBEDO_REFERENCES),
+                                     ("albedo_step", self.albedo_step, ALBEDO_STEPS),
                                      ("select", self.select, SELECTIONS)):
             if value not in choices:
                 raise ValueError(f"{name} must be one of {choices}, got {value!r}")
@@ -105,7 +109,7 @@ class SolverConfig:
         """The solve settings of a session's [lighting] table (photoreg.config.LightingConfig)."""
         return cls(bands=lc.bands, weighting=lc.weighting, regularization=lc.regularization,
                    min_visible=lc.min_visible, mode=lc.mode, bin_min_fraction=lc.bin_min_fraction, loss=lc.loss,
-                   albedo=lc.albedo, albedo_reference=lc.albedo_reference,
+                   albedo=lc.albedo, albedo_reference=lc.albedo_reference, albedo_step=lc.albedo_step,
                    reference_albedo=lc.reference_albedo, select=lc.select,
                    max_bands=lc.max_bands, max_samples=lc.max_samples)
 
