@@ -14,6 +14,7 @@ def main() -> None:
     prof = json.loads((HERE / "results" / "profile_cuda.json").read_text())
     peers = json.loads((HERE / "results" / "peers_cuda.json").read_text())
     ray, vis = peers["raycast"], peers["visibility"]
+    demo = {k: json.loads((HERE / "results" / f"speed_demo_{k}.json").read_text()) for k in ("sun", "nosun")}
     r0 = runs[0]
     rows = [f"| {r['stride']} | {r['rays']} | {r['bands']} | {r['frames_per_s']:.1f} | {r['frames_per_s_median']:.1f} | "
             + " | ".join(f"{r['ms_mean'].get(k, 0.0):.1f}" for k in STAGES) + " |" for r in runs]
@@ -43,11 +44,15 @@ buffer allocated late, a kernel module loaded after the warm-up: one stride-1 fr
 'raycast' stage in some runs while its 95th percentile stayed at a few ms). The GPU kernels are not the
 bottleneck: fuse + ray cast + transfer take a few ms at every stride, and the samples are a random subset of
 at most 8000 pixels drawn before the transfer (so stride 1 traces no more rays than stride 4). The host-side
-robust solve (numpy: IRLS with a joint albedo step over up to 8000 samples, per-region albedo, alternations
-until F moves less than 1%) takes {min(r['ms_mean']['solve'] for r in runs):.0f}-{max(r['ms_mean']['solve'] for r in runs):.0f} ms and sets the rate. The issue's goals
+robust solve (numpy: IRLS over up to 8000 samples alternating F and per-region albedos until F moves less
+than 1%, at most 12 times) takes {min(r['ms_mean']['solve'] for r in runs):.0f}-{max(r['ms_mean']['solve'] for r in runs):.0f} ms and sets the rate; it varies by about 20% between calls on the
+same machine (the stride 4 / 64 rays / 3 bands row is from a second call: 18.0 frames/s in the first). The issue's goals
 (60 frames/s at stride 1, 120 at stride 4) are not met; moving the solve onto the GPU is the next step.
+Where a light is held (the demo, {demo['sun']['size']}, stride 4, 64 rays, 5 bands) the second, joint solve costs
+again as much: {demo['sun']['frames_per_s']:.1f} frames/s ('sun' {demo['sun']['ms_mean']['sun']:.0f} ms, 'solve' {demo['sun']['ms_mean']['solve']:.0f} ms) against
+{demo['nosun']['frames_per_s']:.1f} with `--no-sun --no-bounce` in the same call.
 
-## Inside the fuse and ray-cast stages (`benchmarks/gpu_profile.py`, synchronised medians of 10; 2026-11-22 run)
+## Inside the fuse and ray-cast stages (`benchmarks/gpu_profile.py`, synchronised medians of 10; 2026-11-24 run)
 | integrate | integrate + dense brick export | ray cast stride 1 (with host copies) | its host copies | ray cast stride 4 | its host copies |
 |---|---|---|---|---|---|
 | {prof['integrate_ms']:.2f} ms | {prof['integrate_and_dense_grid_ms']:.2f} ms | {prof['raycast_s1_total_ms']:.2f} ms | {prof['raycast_s1_host_copy_ms']:.2f} ms | {prof['raycast_s4_total_ms']:.2f} ms | {prof['raycast_s4_host_copy_ms']:.2f} ms |
@@ -57,7 +62,7 @@ A room-sized box seen from its centre (72 synthetic depth frames covering every 
 of 16^3 voxels; Open3D VoxelBlockGrid {prof['room_vbg_mib']:.0f} MiB, plus the dense Warp brick
 ({' x '.join(map(str, prof['room_dense_shape']))} voxels) {prof['room_total_mib']:.0f} MiB in all (goal: at most 4 GB).
 
-## Peers (`benchmarks/peers.py`, 2026-11-22 run, {peers['frames_fused']} frames fused, the last frame's view)
+## Peers (`benchmarks/peers.py`, 2026-11-24 run, {peers['frames_fused']} frames fused, the last frame's view)
 - Surface ray cast, 640x480: Warp {ray['warp_ms']:.1f} ms, Open3D VoxelBlockGrid.ray_cast {ray['open3d_ms']:.1f} ms; depth
   differs by {ray['depth_diff_median_mm']:.1f} mm (median); against the frame's sensor depth Warp is off by
   {ray['warp_vs_sensor_median_mm']:.1f} mm and Open3D by {ray['open3d_vs_sensor_median_mm']:.1f} mm (median).

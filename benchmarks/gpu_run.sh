@@ -4,7 +4,8 @@
 # installed into /tmp/site): CUDA correctness,
 # then the figures of benchmarks/gpu.md, benchmarks/speed.md and benchmarks/renderers.md.
 # usage: bash benchmarks/gpu_run.sh RECORDING OUTDIR STEP...
-#   speed      cuda_check, `photoreg bench speed` at four settings, gpu_profile.py, peers.py
+#   speed      cuda_check, `photoreg bench speed` at four settings and on the demo (with and without the
+#              traced light), gpu_profile.py, peers.py
 #   renderers  `photoreg bench renderers --device cuda` on RENDER_SCENES (a scene cache made here with
 #              `photoreg bench renderers`, e.g. ~/.cache/photoreg/bench_scenes)
 #   sweep      `photoreg bench sweep --device cuda` on SWEEP_SCENES (recordings with lighting_gt.json
@@ -30,6 +31,11 @@ for step in "$@"; do
         python3 -m photoreg bench speed "$rec" --device cuda --frames 0:30 --warmup 3 --stride $1 --rays $2 \
           --bands $3 --json "$out/speed_s$1_r$2_b$3.json" 2>/dev/null
       done
+      # The demo holds a traced light: the joint solve's cost, with and without the sun and bounce terms.
+      python3 -m photoreg bench speed data/demo --device cuda --frames 0:30 --warmup 3 --stride 4 --rays 64 \
+        --bands 5 --json "$out/speed_demo_sun.json" 2>/dev/null
+      python3 -m photoreg bench speed data/demo --device cuda --frames 0:30 --warmup 3 --stride 4 --rays 64 \
+        --bands 5 --no-sun --no-bounce --json "$out/speed_demo_nosun.json" 2>/dev/null
       python3 benchmarks/gpu_profile.py "$rec" --device cuda --json "$out/profile_cuda.json"
       # Peers in the same run: Warp ray cast vs Open3D ray_cast, Warp visibility vs Embree.
       python3 benchmarks/peers.py "$rec" --device cuda --json "$out/peers_cuda.json" ;;
