@@ -86,6 +86,41 @@ def test_cluster_separates_colours_not_shading():
     assert (alb.cluster(np.full((5, 2), np.nan), 0.1, 1) == -1).all()
 
 
+def test_split_by_geometry_cuts_object_off_floor_and_joins_floor_pieces():
+    # A white box on a floor; one chroma region holds the box and a sky-tinted shadow strip of the floor
+    # beside it (the generated tabletop's mixed region). The geometric split must give the box (top and
+    # sides together: convex edges) its own region and return the strip to the floor region (coplanar).
+    rng = np.random.default_rng(2)
+    g = np.arange(-0.5, 0.5, 0.02) + 0.01
+    fx, fy = (a.ravel() for a in np.meshgrid(g, g))
+    outside = (np.abs(fx) > 0.1) | (np.abs(fy) > 0.1)
+    floor_p = np.stack([fx, fy, np.zeros_like(fx)], axis=1)[outside]
+    floor_n = np.tile([0.0, 0.0, 1.0], (len(floor_p), 1))
+    t = np.arange(-0.09, 0.1, 0.02)
+    h = np.arange(0.01, 0.1, 0.02)
+    tx, ty = (a.ravel() for a in np.meshgrid(t, t))
+    box_p, box_n = [np.stack([tx, ty, np.full_like(tx, 0.1)], axis=1)], [np.tile([0.0, 0.0, 1.0], (tx.size, 1))]
+    a, z = (v.ravel() for v in np.meshgrid(t, h))
+    for axis in (0, 1):
+        for sign in (-1.0, 1.0):
+            q = np.zeros((a.size, 3))
+            q[:, axis], q[:, 1 - axis], q[:, 2] = sign * 0.1, a, z
+            nrm = np.zeros(3)
+            nrm[axis] = sign
+            box_p.append(q)
+            box_n.append(np.tile(nrm, (a.size, 1)))
+    p = np.vstack([floor_p] + box_p)
+    n = np.vstack([floor_n] + box_n) + rng.normal(0, 0.03, (len(p), 3))
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    is_box = np.arange(len(p)) >= len(floor_p)
+    strip = ~is_box & (p[:, 0] > 0.1) & (p[:, 0] < 0.3) & (np.abs(p[:, 1]) < 0.2)
+    labels = np.where(is_box | strip, 1, 0)
+    out = alb.split_by_geometry(labels, [1], p, n, 10)
+    assert len(np.unique(out[is_box])) == 1 and out[is_box][0] >= 0
+    assert (out[strip] == out[~is_box & ~strip][0]).all() and (out[~is_box] != out[is_box][0]).all()
+    assert (alb.split_by_geometry(labels, [], p, n, 10) == labels).all()
+
+
 def test_regions_recover_lighting_where_one_albedo_fails():
     rng = np.random.default_rng(1)
     rad, tr, nrm, vis, rho, light = scene(rng)

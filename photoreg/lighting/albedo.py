@@ -20,10 +20,15 @@ region gets the assumed albedo `value` (lighting.reference_albedo), which puts F
 from __future__ import annotations
 
 import itertools
+import math
 
 import numpy as np
 
 FAR_CELLS = 3.0          # a sample farther than this (in cells) from every centre belongs to no region
+NEIGHBOUR_SPACINGS = 2.5  # split_by_geometry: samples closer than this many median spacings are neighbours ...
+SMOOTH_DEG = 20.0         # ... on one surface when their normals differ by less than this ...
+CONVEX_TOLERANCE = 0.15   # ... and their edge is not concave by more than this (|dn| along the edge; else convex)
+JOIN_FRACTION = 0.3       # a part with this share of its samples on another region's surface joins it
 REFERENCES = {
     "max": "per channel, the largest albedo over regions holding >= 5% of the samples is `value` (max-RGB)",
     "largest": "the region holding the most samples has albedo `value`",
@@ -160,3 +165,78 @@ def merge_similar(labels: np.ndarray, rho: np.ndarray, tolerance: float) -> tupl
     remap = -np.ones(m + 1, dtype=np.int64)
     remap[order] = np.arange(len(order))
     return remap[merged], len(order)
+
+
+def _joined(pi: np.ndarray, ni: np.ndarray, pj: np.ndarray, nj: np.ndarray) -> np.ndarray:
+    """Whether sample pairs (points p, unit normals n) lie on one surface: the edge between them is convex,
+    c = (n_i - n_j).(p_i - p_j) / |p_i - p_j| > CONVEX_TOLERANCE with neither point above the other's tangent
+    plane (the top and sides of one box; the second test keeps a floor point beside one face of a box from
+    passing as convex with the next face round the corner), or smooth (normals within SMOOTH_DEG) and not
+    concave (c > -CONVEX_TOLERANCE). A concave edge (an object standing on the floor, including the rounded
+    fillet that fusion makes of that corner) joins nothing."""
+    dp = pi - pj
+    t = CONVEX_TOLERANCE * np.linalg.norm(dp, axis=1)
+    above_i, above_j = -np.einsum("ij,ij->i", ni, dp), np.einsum("ij,ij->i", nj, dp)  # p_j over i's plane, ...
+    c = -(above_i + above_j)
+    convex = (c > t) & (above_i < t) & (above_j < t)
+    return convex | ((np.einsum("ij,ij->i", ni, nj) > math.cos(math.radians(SMOOTH_DEG))) & (c > -t))
+
+
+def split_by_geometry(labels: np.ndarray, flagged, points: np.ndarray, normals: np.ndarray,
+                      min_count: int) -> np.ndarray:
+    """Split each region in `flagged` into its surfaces (connected components of _joined pairs of samples
+    closer than NEIGHBOUR_SPACINGS times the region's median sample spacing: locally convex connected
+    patches, the usual way to cut objects off the surface they stand on). A part of which >= JOIN_FRACTION
+    of the samples are _joined to samples of one other (unflagged) region continues that surface (a shadowed
+    piece of the floor whose colour the sky tinted) and joins that region; of the rest the largest keeps the
+    label, others of >= min_count samples become regions and smaller ones get -1.
+    Returns new labels, largest region first."""
+    from scipy.sparse import coo_matrix                  # scipy only here: the split runs on mixed regions
+    from scipy.sparse.csgraph import connected_components
+    from scipy.spatial import cKDTree
+
+    out = labels.copy()
+    nxt = int(labels.max()) + 1 if labels.size else 0
+    others = np.flatnonzero((labels >= 0) & ~np.isin(labels, list(flagged)))
+    other_tree = cKDTree(points[others]) if others.size else None
+    for r in flagged:
+        sel = np.flatnonzero(labels == r)
+        if sel.size < 2 * min_count:
+            continue
+        p, nrm = points[sel], normals[sel]
+        tree = cKDTree(p)
+        radius = NEIGHBOUR_SPACINGS * float(np.median(tree.query(p, k=2)[0][:, 1]))
+        i, j = tree.query_pairs(radius, output_type="ndarray").T
+        ok = _joined(p[i], nrm[i], p[j], nrm[j])
+        nc, comp = connected_components(coo_matrix((np.ones(ok.sum()), (i[ok], j[ok])), shape=(sel.size,) * 2),
+                                        directed=False)
+        size = np.bincount(comp, minlength=nc)
+        target = -np.ones(nc, dtype=np.int64)
+        if other_tree is not None:
+            near = other_tree.query_ball_point(p, radius)
+            a = np.repeat(np.arange(sel.size), [len(x) for x in near])
+            if a.size:
+                b = others[np.concatenate([np.asarray(x, dtype=np.int64) for x in near])]
+                ok = _joined(p[a], nrm[a], points[b], normals[b])
+                m = nxt + 1
+                a, region = np.divmod(np.unique(a[ok] * m + labels[b[ok]]), m)  # each (sample, region) once
+                share = np.bincount(comp[a] * m + region, minlength=nc * m).reshape(nc, m) / size[:, None]
+                best = share.argmax(axis=1)
+                target = np.where(share[np.arange(nc), best] >= JOIN_FRACTION, best, -1)
+        kept = False
+        for c in np.argsort(-size, kind="stable"):
+            part = sel[comp == c]
+            if target[c] >= 0:
+                out[part] = target[c]
+            elif not kept:
+                kept = True
+            elif size[c] >= min_count:
+                out[part], nxt = nxt, nxt + 1
+            else:
+                out[part] = -1
+    size = np.bincount(out[out >= 0], minlength=nxt)
+    order = np.argsort(-size, kind="stable")
+    order = order[size[order] > 0]
+    remap = -np.ones(nxt + 1, dtype=np.int64)
+    remap[order] = np.arange(len(order))
+    return remap[out]
