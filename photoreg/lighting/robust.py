@@ -291,8 +291,8 @@ def _region_albedos(Gm, hm, F) -> np.ndarray:
 
 
 def _albedo_step(Gm, hm, F, counts, cfg: SolverConfig, prior=None, G=None, term_sh=None):
-    """Closed-form region albedos given F (_region_albedos), scale-fixed by the prior (when it has an observed component) or else by
-    cfg's albedo_reference rule and reference_albedo over the regions' weights `counts`; returns
+    """Closed-form region albedos given F (_region_albedos), scale-fixed by the prior (when it has an observed
+    component) or else by cfg's albedo_reference rule and reference_albedo over the regions' weights `counts`; returns
     (rho (m, 3), per-channel scale to move into F). With extra terms (term_sh: their SH rows) the prior is
     compared with F's SH equivalent (_as_sh)."""
     rho = _region_albedos(Gm, hm, F)
