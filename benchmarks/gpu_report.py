@@ -46,7 +46,7 @@ bottleneck: fuse + ray cast + transfer take a few ms at every stride, and the sa
 at most 8000 pixels drawn before the transfer (so stride 1 traces no more rays than stride 4). The host-side
 robust solve (numpy: IRLS over up to 8000 samples alternating F and per-region albedos until F moves less
 than 1%, at most 12 times) takes {min(r['ms_mean']['solve'] for r in runs):.0f}-{max(r['ms_mean']['solve'] for r in runs):.0f} ms and sets the rate; it varies by about 20% between calls on the
-same machine (the stride 4 / 64 rays / 3 bands row is from a second call: 18.0 frames/s in the first). The issue's goals
+same machine (stride 4 / 64 rays / 3 bands: 18.0 and 15.4 frames/s in two calls on 2026-11-24). The issue's goals
 (60 frames/s at stride 1, 120 at stride 4) are not met; moving the solve onto the GPU is the next step.
 Where a light is held (the demo, {demo['sun']['size']}, stride 4, 64 rays, 5 bands) the second, joint solve costs
 again as much: {demo['sun']['frames_per_s']:.1f} frames/s ('sun' {demo['sun']['ms_mean']['sun']:.0f} ms, 'solve' {demo['sun']['ms_mean']['solve']:.0f} ms) against
