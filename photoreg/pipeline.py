@@ -131,7 +131,7 @@ class Pipeline:
         # the SH part of the joint solve holds only what the traced light leaves: regularised more (config.py)
         cfg = dataclasses.replace(self.solver_cfg, regularization=lc.sun_regularization)
         joint = solve(radiance, transfer, normals, visible, cfg, points=points, reference=previous,
-                      terms=terms + [light])
+                      terms=terms + [light], start=sol)
         if not joint.terms["sun"] @ sh.LUMINANCE > 0:
             return None, sol
         return sun, joint

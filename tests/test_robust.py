@@ -86,6 +86,71 @@ def test_cluster_separates_colours_not_shading():
     assert (alb.cluster(np.full((5, 2), np.nan), 0.1, 1) == -1).all()
 
 
+def test_cluster_dense_grid_matches_the_sorted_histogram(monkeypatch):
+    """The dense-grid histogram of cluster() (small grids) gives the labels of the sorted-key one."""
+    rng = np.random.default_rng(5)
+    cases = []
+    for d in (1, 2, 3):
+        for _ in range(20):
+            k, n = int(rng.integers(1, 6)), int(rng.integers(20, 1500))
+            f = rng.normal(0, 1, (k, d))[rng.integers(0, k, n)] + rng.normal(0, rng.uniform(0.02, 0.5), (n, d))
+            f[rng.integers(0, n, 2)] = np.nan
+            cases.append((f, rng.uniform(0.03, 0.6), int(rng.integers(1, 40))))
+    dense = [alb.cluster(*c) for c in cases]
+    monkeypatch.setattr(alb, "DENSE_CELLS", 0)
+    assert all(np.array_equal(a, alb.cluster(*c)) for a, c in zip(dense, cases))
+
+
+def test_fast_linear_algebra_matches_the_reference_forms():
+    """The Cholesky path of the Tikhonov solves, the closed-form active set and the outlier-only Gram update
+    agree with the eigen-decomposition, lstsq active set and direct sums (rounding apart)."""
+    from photoreg.lighting import robust as rb
+
+    rng = np.random.default_rng(6)
+    for trial in range(200):
+        k, p, n = int(rng.choice([4, 9, 25])), int(rng.integers(1, 4)), 300
+        A = rng.normal(size=(n, k + p))
+        A[:, k:] = np.abs(A[:, k:])
+        if trial % 5 == 0:
+            A[:, k] = 2 * np.abs(A[:, 0])      # a term the SH nearly hold
+        G = np.stack([(A * rng.uniform(0.1, 1, n)[:, None]).T @ A for _ in range(3)])
+        g = np.stack([A.T @ rng.normal(size=n) for _ in range(3)])
+        rhs = rng.normal(size=(3, k, 2))
+        solve_fast, lam = rb._tikhonov(G[:, :k, :k], 1e-2)
+        V, inv, lam_ref = rb._factor(G[:, :k, :k], 1e-2)
+        ref = V @ (inv[..., None] * (np.swapaxes(V, 1, 2) @ rhs))
+        assert np.allclose(solve_fast(rhs), ref, rtol=1e-9, atol=1e-12) and np.allclose(lam, lam_ref)
+        ub = np.where(rng.random((p, 3)) < 0.5, rng.uniform(0, 2, (p, 3)), np.inf)
+        F, _ = rb._solve_channels(G, g, 1e-2, np.zeros((3, k)), p, ub)
+        for c in range(3):   # the reference: lstsq active set on the Schur complement
+            H = np.linalg.inv(G[c, :k, :k] + lam[c] * np.eye(k))
+            U = G[c, :k, k:]
+            M, r = G[c, k:, k:] - U.T @ H @ U, g[c, k:] - U.T @ H @ g[c, :k]
+            act = np.diag(M) > 1e-12 * np.diag(G[c, k:, k:])
+            e, fixed = np.zeros(p), np.zeros(p, dtype=bool)
+            while act.any():
+                free = act & ~fixed
+                e[~fixed] = 0.0
+                rr = r - M[:, fixed] @ e[fixed]
+                if free.any():
+                    e[free] = np.linalg.lstsq(M[np.ix_(free, free)], rr[free], rcond=None)[0]
+                if (e[free] < 0).any():
+                    act[np.flatnonzero(free)[int(np.argmin(e[free]))]] = False
+                    continue
+                over = free & (e > ub[:, c])
+                if not over.any():
+                    break
+                j = np.flatnonzero(over)[int(np.argmax((e - ub[:, c])[over]))]
+                fixed[j], e[j] = True, ub[j, c]
+            assert np.allclose(F[c, k:], np.clip(e, 0, ub[:, c]), rtol=1e-7, atol=1e-10)
+    labels = rng.integers(-1, 4, 500)
+    A, I, w0 = rng.normal(size=(500, 9)), rng.uniform(size=(500, 3)), rng.uniform(0.5, 2, 500)
+    rw = np.where(rng.random(500) < 0.3, rng.uniform(0, 1, 500), 1.0)
+    w = w0 * rw * (labels >= 0)
+    for got, ref in zip(rb._Regions.of(A, I, labels, 4, w0).grams(w), rb._Regions.of(A, I, labels, 4).grams(w)):
+        assert np.allclose(got, ref, rtol=1e-12, atol=1e-12)
+
+
 def test_split_by_geometry_cuts_object_off_floor_and_joins_floor_pieces():
     # A white box on a floor; one chroma region holds the box and a sky-tinted shadow strip of the floor
     # beside it (the generated tabletop's mixed region). The geometric split must give the box (top and

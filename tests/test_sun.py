@@ -200,3 +200,26 @@ def test_joint_solve_with_the_traced_light_uses_its_own_regularization(monkeypat
     for frame in iter_frames(rec, [0]):
         assert pipe.process(frame).diagnostics.sun is not None
     assert sorted(set(used)) == [(False, 0.01), (True, 0.07)], used
+
+
+def test_joint_solve_reuses_the_first_solve_setup():
+    """`start` (the pipeline's solve without the light) only saves work: the joint solve comes out the same
+    as without it, and a start from other samples or settings is not used."""
+    rng = np.random.default_rng(4)
+    radiance, transfer, normals, t_sun, *_ = model_samples(rng)
+    cfg = SolverConfig(bands=5, **ROBUST)
+    points = rng.normal(size=(len(normals), 3))
+    first = solve(radiance, transfer, normals, np.ones(len(normals)), cfg, points=points)
+    term = Term("sun", t_sun, lobe_sh(np.ones(1), SUN, 1e-9, 5)[0])
+    joint_cfg = SolverConfig(bands=5, regularization=2e-2, **ROBUST)
+    cold = solve(radiance, transfer, normals, np.ones(len(normals)), joint_cfg, points=points, terms=[term])
+    warm = solve(radiance, transfer, normals, np.ones(len(normals)), joint_cfg, points=points, terms=[term],
+                 start=first)
+    assert warm.setup is first.setup
+    assert np.allclose(warm.lighting.sh, cold.lighting.sh, rtol=0, atol=1e-12 * np.abs(cold.lighting.sh).max())
+    assert np.array_equal(warm.labels, cold.labels) and np.allclose(warm.terms["sun"], cold.terms["sun"])
+    other = SolverConfig(bands=5, chroma_bandwidth=0.2, **ROBUST)
+    assert solve(radiance, transfer, normals, np.ones(len(normals)), other, start=first).setup is not first.setup
+    mask = np.arange(len(normals)) % 2 == 0
+    assert solve(radiance, transfer, normals, np.ones(len(normals)), cfg, mask=mask,
+                 start=first).setup is not first.setup

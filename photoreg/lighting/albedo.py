@@ -24,6 +24,7 @@ import math
 
 import numpy as np
 
+DENSE_CELLS = 1 << 22   # cluster(): histograms of up to this many cells are counted on a dense grid
 FAR_CELLS = 3.0          # a sample farther than this (in cells) from every centre belongs to no region
 NEIGHBOUR_SPACINGS = 2.5  # split_by_geometry: samples closer than this many median spacings are neighbours ...
 SMOOTH_DEG = 20.0         # ... on one surface when their normals differ by less than this ...
@@ -72,30 +73,56 @@ def cluster(features: np.ndarray, bandwidth, min_count: int) -> np.ndarray:
         cells = np.clip(cells, 0, 2 ** (62 // d) - 3)
         base = int(cells.max()) + 2
     weights = base ** np.arange(d, dtype=np.int64)
-    keys, inverse, counts = np.unique(cells @ weights, return_inverse=True, return_counts=True)
+    flat = cells @ weights
     offsets = np.array(list(itertools.product((-1, 0, 1), repeat=d)), dtype=np.int64) @ weights
+    # cells lie in 1..base-2 per feature, so a neighbour's flat key never wraps into another row
+    if base ** d <= DENSE_CELLS:  # the histogram as a dense grid: each neighbour lookup is a shifted slice
+        dense = np.bincount(flat, minlength=base ** d)
+        keys = np.flatnonzero(dense)
+        counts = dense[keys]
+        inverse = np.searchsorted(keys, flat)
+        pad = int(weights.sum())  # the largest |offset|
+        padded = np.zeros(base ** d + 2 * pad, dtype=np.int64)
+        padded[pad:pad + base ** d] = dense
+        sm = np.zeros(base ** d, dtype=np.int64)
+        for o in offsets:
+            sm += padded[pad + o:pad + o + base ** d]
+        smooth = sm[keys]
+        padded[pad:pad + base ** d] = np.where(dense > 0, sm, 0)  # as lookup(): occupied cells only
+        peak = smooth >= min_count
+        for o in offsets[offsets != 0]:
+            nb = padded[keys + pad + o]
+            peak &= (smooth > nb) | ((smooth == nb) & (o > 0))  # ties: the lower key wins
+    else:
+        keys, inverse, counts = np.unique(flat, return_inverse=True, return_counts=True)
 
-    def lookup(values: np.ndarray, at: np.ndarray) -> np.ndarray:
-        pos = np.clip(np.searchsorted(keys, at), 0, len(keys) - 1)
-        return np.where(keys[pos] == at, values[pos], 0)
+        def lookup(values: np.ndarray, at: np.ndarray) -> np.ndarray:
+            pos = np.clip(np.searchsorted(keys, at), 0, len(keys) - 1)
+            return np.where(keys[pos] == at, values[pos], 0)
 
-    smooth = sum(lookup(counts, keys + o) for o in offsets)
-    peak = smooth >= min_count
-    for o in offsets[offsets != 0]:
-        nb = lookup(smooth, keys + o)
-        peak &= (smooth > nb) | ((smooth == nb) & (o > 0))  # ties: the lower key wins
+        smooth = sum(lookup(counts, keys + o) for o in offsets)
+        peak = smooth >= min_count
+        for o in offsets[offsets != 0]:
+            nb = lookup(smooth, keys + o)
+            peak &= (smooth > nb) | ((smooth == nb) & (o > 0))  # ties: the lower key wins
     if not peak.any():
         return labels
+
+    def sq_dist(centres):  # (n, c) squared distances, summed per feature (no (n, c, d) temporary)
+        dist = (z[:, 0, None] - centres[None, :, 0]) ** 2
+        for j in range(1, d):
+            dist += (z[:, j, None] - centres[None, :, j]) ** 2
+        return dist
+
     centres = _sums(inverse, z, len(keys))[peak] / counts[peak][:, None]
     for _ in range(2):  # k-means refinement
-        dist = ((z[:, None, :] - centres[None]) ** 2).sum(axis=2)
-        near = dist.argmin(axis=1)
+        near = sq_dist(centres).argmin(axis=1)
         sums = _sums(near, z, len(centres))
         num = np.bincount(near, minlength=len(centres))
         centres = np.where(num[:, None] > 0, sums / np.maximum(num, 1)[:, None], centres)
-    dist = ((z[:, None, :] - centres[None]) ** 2).sum(axis=2)
+    dist = sq_dist(centres)
     near = dist.argmin(axis=1)
-    near[np.sqrt(dist.min(axis=1)) > FAR_CELLS] = -1
+    near[np.sqrt(dist[np.arange(len(near)), near]) > FAR_CELLS] = -1
     size = np.bincount(near[near >= 0], minlength=len(centres))
     order = [c for c in np.argsort(-size, kind="stable") if size[c] >= min_count]
     remap = -np.ones(len(centres) + 1, dtype=np.int64)
@@ -154,9 +181,9 @@ def merge_similar(labels: np.ndarray, rho: np.ndarray, tolerance: float) -> tupl
         return i
 
     logs = np.log(np.maximum(rho, 1e-6))
-    for a, b in itertools.combinations(range(m), 2):
-        if np.abs(logs[a] - logs[b]).max() < tolerance:
-            parent[root(b)] = root(a)
+    close = np.abs(logs[:, None, :] - logs[None, :, :]).max(axis=2) < tolerance
+    for a, b in zip(*np.nonzero(np.triu(close, 1))):  # the pairs (a < b) in order
+        parent[root(int(b))] = root(int(a))
     roots = np.array([root(i) for i in range(m)] + [-1])
     merged = roots[labels]  # labels -1 -> -1
     size = np.bincount(merged[merged >= 0], minlength=m)

@@ -43,10 +43,12 @@ information keep the prior exactly (eigenvalue cut-off), as in solver.regularize
 """
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.linalg.lapack import dpotrf as _potrf, dpotrs as _potrs
 
 from ..types import Lighting, SolveDiagnostics
 from . import albedo as alb
@@ -68,9 +70,12 @@ MIN_DOF = 2.0               # fewer resolved combinations (one plane resolves ~1
 
 def loss_weights(u: np.ndarray, loss: str, c: float) -> np.ndarray:
     """IRLS weights psi(u)/u of scaled residuals u: 1 (none), Huber min(1, c/|u|), Tukey (1-(u/c)^2)^2."""
-    a = np.abs(np.nan_to_num(u, nan=np.inf))
-    if loss == "huber":
-        return np.where(a <= c, 1.0, c / np.maximum(a, 1e-300))
+    a = np.abs(u)
+    if not np.isfinite(a).all():  # NaN counts as infinitely far, an infinite residual as the largest float
+        a = np.where(np.isnan(a), np.inf, np.minimum(a, np.finfo(np.float64).max))
+    if loss == "huber":  # min(1, c / a) is 1 for a <= c (also a = 0) and c / a above
+        with np.errstate(divide="ignore", over="ignore"):
+            return np.minimum(1.0, c / a)
     if loss == "tukey":
         return np.where(a < c, (1.0 - (a / c) ** 2) ** 2, 0.0)
     return np.ones_like(a)
@@ -126,6 +131,23 @@ class Solution:
     samples: np.ndarray | None = None           # indices of the fitted samples in the inputs ...
     labels: np.ndarray | None = None            # ... their albedo regions (-1: none) ...
     weights: np.ndarray | None = None           # ... and final weights (normal x robust), for the sun search
+    setup: "_Setup | None" = None               # what a later solve on the same samples reuses (solve's `start`)
+
+
+@dataclass
+class _Setup:
+    """The parts of a solve that depend only on its samples and on settings that the joint solve with a traced
+    light does not change: the normal-distribution weights and the first-pass (colour) albedo regions."""
+
+    key: tuple           # the settings they were computed with (_setup_key)
+    samples: np.ndarray  # indices of the fitted samples
+    w0: np.ndarray       # normal_weights of the samples (before any hold-out)
+    labels: np.ndarray   # the first-pass regions
+
+
+def _setup_key(cfg: SolverConfig, min_count: int) -> tuple:
+    return (cfg.weighting, cfg.grid_bins, cfg.density_bandwidth, cfg.bin_min_fraction, cfg.seed, cfg.albedo,
+            cfg.chroma_bandwidth, min_count)
 
 
 @dataclass
@@ -162,34 +184,87 @@ def _factor(G: np.ndarray, lam_rel: float) -> tuple[np.ndarray, np.ndarray, np.n
     return V, inv, lam
 
 
+def _tikhonov(G: np.ndarray, lam_rel: float):
+    """(H, lam): H(rhs) = (G_c + lam_c I)^+ rhs_c per channel c for rhs (3, K, j), with _factor's eigenvalue
+    cut-off, and lam (3,). When every G_c - t I is positive definite (t = K * 1e-13 * trace(G_c), at least
+    _factor's cut-off) nothing is cut and Cholesky factors give the same solution (up to rounding) about ten
+    times faster than the eigen-decomposition; otherwise _factor's."""
+    k = G.shape[-1]
+    lam = lam_rel * np.trace(G, axis1=-2, axis2=-1) / k
+    eye = np.eye(k)
+    factors = []
+    for c in range(G.shape[0]):
+        t = k * 1e-13 * float(np.trace(G[c]))
+        if not (lam[c] > 0 and _potrf(G[c] - t * eye, lower=1, clean=0)[1] == 0):
+            break
+        L, info = _potrf(G[c] + lam[c] * eye, lower=1, clean=0)
+        if info != 0:
+            break
+        factors.append(L)
+    else:
+        def solve_chol(rhs):
+            return np.stack([_potrs(L, rhs[c], lower=1)[0] for c, L in enumerate(factors)])
+        return solve_chol, lam
+    V, inv, lam = _factor(G, lam_rel)
+
+    def solve_eig(rhs):
+        return V @ (inv[..., None] * (np.swapaxes(V, 1, 2) @ rhs))
+    return solve_eig, lam
+
+
 @dataclass
 class _Regions:
     """The samples sorted by albedo region (labels -1 left out), so that the per-region sums of the IRLS
-    iterations are contiguous slices; built once per label assignment, then grams(w) for each new weighting."""
+    iterations are contiguous slices; built once per label assignment, then grams(w) for each new weighting.
+    With `base` weights (the normal weights: robust weights only lower them) the sums at the base weights are
+    kept and grams(w) subtracts those of the rows whose weight fell (the outliers; Huber leaves most at 1)."""
 
     A: np.ndarray        # (n, K') sorted rows of the design
     I: np.ndarray        # (n, 3) their radiance
     idx: np.ndarray      # (n,) their indices in the unsorted samples
     bounds: np.ndarray   # (m + 1,) region r is rows bounds[r]:bounds[r + 1]
+    I2: np.ndarray | None = None   # (n, 3) I * I (c0's summands; filled in by of())
+    base: tuple | None = None      # (sorted base weights, their sums (G, h, c0))
 
     @classmethod
-    def of(cls, A: np.ndarray, I: np.ndarray, labels: np.ndarray, m: int) -> "_Regions":
+    def of(cls, A: np.ndarray, I: np.ndarray, labels: np.ndarray, m: int, base=None) -> "_Regions":
         idx = np.flatnonzero(labels >= 0)
         idx = idx[np.argsort(labels[idx], kind="stable")]
-        return cls(np.ascontiguousarray(A[idx]), I[idx], idx, np.searchsorted(labels[idx], np.arange(m + 1)))
+        Is = np.take(I, idx, axis=0)  # take: several times faster than fancy indexing of rows
+        reg = cls(np.take(A, idx, axis=0), Is, idx, np.searchsorted(labels[idx], np.arange(m + 1)), Is * Is)
+        if base is not None:
+            ws = np.take(base, idx)
+            reg.base = (ws, reg._sums(ws, np.arange(idx.size), reg.bounds))
+        return reg
+
+    def _sums(self, ws: np.ndarray, rows: np.ndarray, bounds: np.ndarray):
+        """Per-region sums over the sorted `rows` (ascending; region r is rows[bounds[r]:bounds[r + 1]]) with
+        their weights ws (len(rows),)."""
+        m, k = len(bounds) - 1, self.A.shape[1]
+        full = rows.size == self.idx.size
+        A = self.A if full else np.take(self.A, rows, axis=0)
+        I = self.I if full else np.take(self.I, rows, axis=0)
+        I2 = self.I2 if full else np.take(self.I2, rows, axis=0)
+        Aw = A * ws[:, None]
+        G, h = np.empty((m, k, k)), np.empty((m, 3, k))
+        for r in range(m):
+            a, b = bounds[r], bounds[r + 1]
+            np.matmul(Aw[a:b].T, A[a:b], out=G[r])
+            np.matmul(I[a:b].T, Aw[a:b], out=h[r])
+        return G, h, ws @ I2
 
     def grams(self, w: np.ndarray):
         """Per-region sums G_m = sum w R R^T (m, K, K), h_m = sum w I R (m, 3, K) and c0 = sum w I^2 (3,)
         for sample weights w (unsorted, (N,))."""
-        m, k = len(self.bounds) - 1, self.A.shape[1]
-        ws = w[self.idx]
-        Aw = self.A * ws[:, None]
-        G, h = np.zeros((m, k, k)), np.zeros((m, 3, k))
-        for r in range(m):
-            a, b = self.bounds[r], self.bounds[r + 1]
-            G[r] = Aw[a:b].T @ self.A[a:b]
-            h[r] = self.I[a:b].T @ Aw[a:b]
-        return G, h, (ws[:, None] * self.I * self.I).sum(axis=0)
+        ws = np.take(w, self.idx)
+        if self.base is not None:
+            wb, (Gb, hb, cb) = self.base
+            d = wb - ws
+            rows = np.flatnonzero(d)
+            if 2 * rows.size < ws.size:   # fewer rows changed than not: subtract theirs from the base sums
+                Gd, hd, cd = self._sums(np.take(d, rows), rows, np.searchsorted(rows, self.bounds))
+                return Gb - Gd, hb - hd, cb - cd
+        return self._sums(ws, np.arange(self.idx.size), self.bounds)
 
 
 def _grams(A: np.ndarray, I: np.ndarray, w: np.ndarray, labels: np.ndarray, m: int):
@@ -235,39 +310,61 @@ def _solve_channels(G, g, lam_rel, prior, n_extra: int = 0, upper=None):
     regularised inverse, U the coupling); returned as F's last n_extra coefficients."""
     k = G.shape[1] - n_extra
     Gs = G[:, :k, :k]
-    V, inv, lams = _factor(Gs, lam_rel)
-
-    def regularised_inverse(rhs):  # (3, k, j) -> (G_c + lam_c I)^+ rhs_c per channel
-        return V @ (inv[..., None] * (np.swapaxes(V, 1, 2) @ rhs))
-
+    regularised_inverse, lams = _tikhonov(Gs, lam_rel)
     f0 = prior + regularised_inverse((g[:, :k] - np.einsum("cij,cj->ci", Gs, prior))[..., None])[..., 0]
     if not n_extra:
         return f0, lams
-    HUs = regularised_inverse(G[:, :k, k:])
-    F = np.zeros((3, k + n_extra))
-    for c in range(3):
-        U, HU = G[c, :k, k:], HUs[c]
-        M, r = G[c, k:, k:] - U.T @ HU, g[c, k:] - U.T @ f0[c]
-        e, active = np.zeros(n_extra), np.diag(M) > 1e-12 * np.maximum(np.diag(G[c, k:, k:]), 1e-300)
-        ub = np.full(n_extra, np.inf) if upper is None else upper[:, c]
-        fixed = np.zeros(n_extra, dtype=bool)
-        while active.any():
-            free = active & ~fixed
-            e[~fixed] = 0.0
-            rr = r - M[:, fixed] @ e[fixed]
-            if free.any():
-                e[free] = np.linalg.lstsq(M[np.ix_(free, free)], rr[free], rcond=None)[0]
-            if (e[free] < 0).any():
-                active[np.flatnonzero(free)[int(np.argmin(e[free]))]] = False
-                continue
-            over = free & (e > ub)
-            if not over.any():
-                break
-            j = np.flatnonzero(over)[int(np.argmax((e - ub)[over]))]
-            fixed[j], e[j] = True, ub[j]
-        e = np.clip(e, 0.0, ub)
-        F[c, :k], F[c, k:] = f0[c] - HU @ e, e
+    U = G[:, :k, k:]                                                   # (3, k, p) coupling
+    HU = regularised_inverse(U)
+    M = G[:, k:, k:] - np.swapaxes(U, 1, 2) @ HU                       # (3, p, p) Schur complements
+    r = g[:, k:] - (np.swapaxes(U, 1, 2) @ f0[..., None])[..., 0]     # (3, p)
+    diag = np.diagonal(M, axis1=1, axis2=2)
+    active = diag > 1e-12 * np.maximum(np.diagonal(G[:, k:, k:], axis1=1, axis2=2), 1e-300)
+    ub = np.full((3, n_extra), np.inf) if upper is None else np.asarray(upper, dtype=np.float64).T
+    if n_extra == 1:  # the active set in closed form: e = r / M within [0, ub], 0 when inactive
+        e = np.where(active, np.minimum(np.maximum(r / np.where(active, M[:, :, 0], 1.0), 0.0), ub), 0.0)
+    else:
+        e = np.array([_active_set(M[c], r[c], active[c], ub[c]) for c in range(3)])
+    e = np.clip(e, 0.0, ub)
+    F = np.concatenate([f0 - (HU @ e[..., None])[..., 0], e], axis=1)
     return F, lams
+
+
+def _active_set(M: np.ndarray, r: np.ndarray, active: np.ndarray, ub: np.ndarray) -> np.ndarray:
+    """Extra-term coefficients e (p,) of one channel minimising e^T M e - 2 r^T e with 0 <= e <= ub over the
+    `active` terms (others 0): a negative e leaves the active set, the one most above its bound is fixed there.
+    On Python floats (p is 2 or 3: numpy's per-call overhead was most of the solve's time here)."""
+    p = len(r)
+    Ml, rl, ubl, act = M.tolist(), r.tolist(), ub.tolist(), active.tolist()
+    e, fixed = [0.0] * p, [False] * p
+    while any(act):
+        free = [i for i in range(p) if act[i] and not fixed[i]]
+        e = [e[i] if fixed[i] else 0.0 for i in range(p)]
+        if free:
+            rr = [rl[i] - sum(Ml[i][j] * e[j] for j in range(p) if fixed[j]) for i in free]
+            for i, v in zip(free, _small_lstsq([[Ml[i][j] for j in free] for i in free], rr)):
+                e[i] = v
+        if any(e[i] < 0 for i in free):
+            act[min(free, key=lambda i: e[i])] = False   # the first smallest, as argmin
+            continue
+        over = [i for i in free if e[i] > ubl[i]]
+        if not over:
+            break
+        j = max(over, key=lambda i: e[i] - ubl[i])       # the first largest, as argmax
+        fixed[j], e[j] = True, ubl[j]
+    return np.array(e)
+
+
+def _small_lstsq(M: list, r: list) -> list:
+    """lstsq(M, r) of a tiny system: 1 x 1 and well-conditioned 2 x 2 in closed form, else numpy's."""
+    if len(r) == 1:
+        return [r[0] / M[0][0] if M[0][0] != 0 else 0.0]
+    if len(r) == 2:
+        (a, b), (c, d) = M
+        det = a * d - b * c
+        if abs(det) > 1e-8 * max(abs(a), abs(b), abs(c), abs(d)) ** 2:
+            return [(d * r[0] - b * r[1]) / det, (a * r[1] - c * r[0]) / det]
+    return np.linalg.lstsq(np.array(M), np.array(r), rcond=None)[0].tolist()
 
 
 def _prior_scale(F: np.ndarray, prior: np.ndarray, G: np.ndarray) -> np.ndarray | None:
@@ -297,8 +394,9 @@ def _albedo_step(Gm, hm, F, counts, cfg: SolverConfig, prior=None, G=None, term_
     compared with F's SH equivalent (_as_sh)."""
     rho = _region_albedos(Gm, hm, F)
     ok = np.isfinite(rho)
-    fill = np.array([np.median(rho[ok[:, c], c]) if ok[:, c].any() else 1.0 for c in range(3)])
-    rho = np.where(ok, rho, fill)
+    if not ok.all():
+        fill = np.array([np.median(rho[ok[:, c], c]) if ok[:, c].any() else 1.0 for c in range(3)])
+        rho = np.where(ok, rho, fill)
     scale = None
     if prior is not None and prior.any():
         scale = _prior_scale(_as_sh(F, term_sh), prior, G[:, :prior.shape[1], :prior.shape[1]])
@@ -377,16 +475,23 @@ def coverage(G: np.ndarray, lam: float) -> tuple[list[str], float]:
     ev = np.maximum(ev, 0.0)
     tiny = max(float(ev.max()), 0.0) * G.shape[0] * 1e-13
     filt = np.where(ev > tiny, ev / np.maximum(ev + lam, 1e-300), 0.0)
-    lobe = sh.cosine_lobe(b)
+    e_axes, e_sphere = _irradiance_functionals(b)
 
-    def observed(normals):
-        e = sh.sh_basis(normals, b) * lobe
+    def observed(e):
         proj = e @ V
         return (proj * proj * filt).sum(axis=1) / np.maximum((e * e).sum(axis=1), 1e-300)
 
-    axes = observed(np.array(list(AXES.values()), dtype=np.float64))
+    axes = observed(e_axes)
     missing = [name for name, o in zip(AXES, axes) if o < OBSERVED]
-    return missing, float(np.mean(observed(COVERAGE_NORMALS) >= OBSERVED))
+    return missing, float(np.mean(observed(e_sphere) >= OBSERVED))
+
+
+@functools.lru_cache(maxsize=8)
+def _irradiance_functionals(b: int) -> tuple[np.ndarray, np.ndarray]:
+    """coverage()'s functionals e(n) = A_l Y_lm(n) at the AXES and at COVERAGE_NORMALS for b bands (fixed)."""
+    lobe = sh.cosine_lobe(b)
+    return (sh.sh_basis(np.array(list(AXES.values()), dtype=np.float64), b) * lobe,
+            sh.sh_basis(COVERAGE_NORMALS, b) * lobe)
 
 
 def _split_mixed(labels, A, I, F, w, points, normals, min_count: int) -> np.ndarray:
@@ -413,7 +518,7 @@ def _split_mixed(labels, A, I, F, w, points, normals, min_count: int) -> np.ndar
 
 
 def solve(radiance, transfer, normals, visible, cfg: SolverConfig, prior=None, mask=None,
-          points=None, reference=None, terms: list[Term] | None = None) -> Solution:
+          points=None, reference=None, terms: list[Term] | None = None, start: Solution | None = None) -> Solution:
     """Robust lighting of one frame (module docstring). Inputs as solver.solve_lighting, plus optional
     world `points` (N, 3) for spatial hold-out folds and `reference` (3, B'*B'), the previous lighting:
     its colour balance fixes the albedo scale (instead of cfg.albedo_reference) and it is returned
@@ -422,7 +527,10 @@ def solve(radiance, transfer, normals, visible, cfg: SolverConfig, prior=None, m
     least-squares values, so the pipeline passes the previous lighting as `reference` and fuses
     frames in photoreg.lighting.temporal instead.) Shapes that do not match raise ValueError; data
     problems give a finite, weak result with notes. `terms`: extra terms solved with the SH (module
-    docstring; they need cfg.select = "fixed")."""
+    docstring; they need cfg.select = "fixed"). `start`: a solution of the same inputs with other terms or another
+    regularisation (the pipeline's solve before the traced light is added): its sample weights and first-pass
+    (colour) albedo regions are reused when it fitted the same samples with the same settings (same result,
+    less work)."""
     b_fit = cfg.fit_bands
     k_fit = b_fit * b_fit
     radiance, transfer, normals, idx, prior, notes = select_samples(radiance, transfer, normals, visible, cfg,
@@ -461,25 +569,31 @@ def solve(radiance, transfer, normals, visible, cfg: SolverConfig, prior=None, m
         A = np.hstack([A, np.stack(cols, axis=1)])
     ub = np.array([t.upper if t.upper is not None else np.full(3, np.inf) for t in terms]) if terms else None
     pts = None if points is None else np.asarray(points, dtype=np.float64).reshape(-1, 3)[idx]
-    w0 = normal_weights(normals[idx], cfg)
+    min_count = max(int(cfg.min_region_fraction * n), 3)
+    key = _setup_key(cfg, min_count)
+    setup = start.setup if start is not None else None
+    if setup is None or setup.key != key or not np.array_equal(setup.samples, idx):
+        setup = _Setup(key, idx, normal_weights(normals[idx], cfg), None)
+        if cfg.albedo == "regions":
+            setup.labels = alb.cluster(alb.colour_features(I, with_intensity=False), cfg.chroma_bandwidth, min_count)
+    w0 = setup.w0
     held = np.zeros(n, dtype=bool)
     if cfg.holdout_fraction > 0 and n >= 20:
         held = _folds(n, pts, cfg.seed + 1) < round(cfg.holdout_fraction * FOLDS)
         w0 = np.where(held, 0.0, w0)
-    min_count = max(int(cfg.min_region_fraction * n), 3)
 
     labels = np.zeros(n, dtype=np.int64)
     if cfg.albedo == "regions":
-        found = alb.cluster(alb.colour_features(I, with_intensity=False), cfg.chroma_bandwidth, min_count)
+        found = setup.labels
         if (found >= 0).any():
-            labels = found
+            labels = found.copy()
     m = int(labels.max()) + 1
     rho = np.ones((m, 3))
     rw = np.ones(n)
     F = np.hstack([prior_fit, np.zeros((3, p))])
     iterations = cfg.iterations if (cfg.loss != "none" or cfg.albedo == "regions") else 1
     c = cfg.loss_scale or TUNING.get(cfg.loss, 1.0)
-    F_last, regions = F, _Regions.of(A, I, labels, m)
+    F_last, regions = F, _Regions.of(A, I, labels, m, w0)
     for it in range(iterations):
         w = w0 * rw * (labels >= 0)
         Gm, hm, c0 = regions.grams(w)
@@ -499,7 +613,7 @@ def solve(radiance, transfer, normals, visible, cfg: SolverConfig, prior=None, m
                 if pts is not None and normals is not None:
                     labels = _split_mixed(labels, A, I, F, w0 * rw, pts, normals[idx], min_count)
                 m = int(labels.max()) + 1
-                w, regions = w0 * rw * (labels >= 0), _Regions.of(A, I, labels, m)
+                w, regions = w0 * rw * (labels >= 0), _Regions.of(A, I, labels, m, w0)
                 Gm, hm, c0 = regions.grams(w)
             rho, scale = _albedo_step(Gm, hm, F, _counts(labels, w, m), cfg, ref_F, G, tsh)
             F = F * scale[:, None]
@@ -507,12 +621,12 @@ def solve(radiance, transfer, normals, visible, cfg: SolverConfig, prior=None, m
                 merged, m_merged = alb.merge_similar(labels, rho, MERGE_LOG_TOLERANCE)
                 if not np.array_equal(merged, labels):
                     labels, m = merged, m_merged
-                    w, regions = w0 * rw * (labels >= 0), _Regions.of(A, I, labels, m)
+                    w, regions = w0 * rw * (labels >= 0), _Regions.of(A, I, labels, m, w0)
                     Gm, hm, c0 = regions.grams(w)
                     rho, scale = _albedo_step(Gm, hm, F, _counts(labels, w, m), cfg, ref_F, G, tsh)
                     F = F * scale[:, None]
         if cfg.loss != "none":
-            pred = rho[np.maximum(labels, 0)] * (A @ F.T)
+            pred = np.take(rho, np.maximum(labels, 0), axis=0) * (A @ np.ascontiguousarray(F.T))
             r = (I - pred) @ sh.LUMINANCE
             active = w0 * (labels >= 0)
             rw = loss_weights(r / robust_scale(r, active), cfg.loss, c)
@@ -527,7 +641,8 @@ def solve(radiance, transfer, normals, visible, cfg: SolverConfig, prior=None, m
         bands, lam_rel = cfg.bands, cfg.regularization
     k = bands * bands
     Ak = A if p else np.ascontiguousarray(A[:, :k])  # extra terms imply fixed bands: k = k_fit
-    G, g, c0 = _channel_systems(*_grams(Ak, I, w, labels, m), rho)
+    # regions holds the final labels; its design is A's unless fewer bands were selected
+    G, g, c0 = _channel_systems(*(regions if Ak is A else _Regions.of(Ak, I, labels, m)).grams(w), rho)
     prior_b = np.hstack([prior_fit[:, :k], np.zeros((3, p))])
     F, lams = _solve_channels(G, g, lam_rel, prior_b[:, :k], p, ub)
     G_sh, g_sh = G[:, :k, :k], g[:, :k]
@@ -554,7 +669,7 @@ def solve(radiance, transfer, normals, visible, cfg: SolverConfig, prior=None, m
         notes.append("solution overflowed: returning the " + ("prior" if prior is not None else "zero lighting"))
         F = prior_b.copy()
 
-    pred = rho[np.maximum(labels, 0)] * (Ak @ F.T)
+    pred = np.take(rho, np.maximum(labels, 0), axis=0) * (Ak @ np.ascontiguousarray(F.T))
     scale = float(np.abs(I).max()) or 1.0
     with np.errstate(over="ignore", invalid="ignore"):
         resid = (pred - I) / scale
@@ -584,4 +699,4 @@ def solve(radiance, transfer, normals, visible, cfg: SolverConfig, prior=None, m
     system = NormalEquations(G_sh, g_sh, c0, lams, sigma2 if np.isfinite(sigma2) else 1.0, n_fit)
     return Solution(Lighting(_as_sh(F, tsh)), diag, system, rho,
                     terms={t.name: F[:, k + j].copy() for j, t in enumerate(terms)}, samples=idx, labels=labels,
-                    weights=w)
+                    weights=w, setup=setup)
