@@ -193,15 +193,16 @@ def _tikhonov(G: np.ndarray, lam_rel: float):
     lam = lam_rel * np.trace(G, axis1=-2, axis2=-1) / k
     eye = np.eye(k)
     factors = []
-    for c in range(G.shape[0]):
-        t = k * 1e-13 * float(np.trace(G[c]))
-        if not (lam[c] > 0 and _potrf(G[c] - t * eye, lower=1, clean=0)[1] == 0):
-            break
-        L, info = _potrf(G[c] + lam[c] * eye, lower=1, clean=0)
-        if info != 0:
-            break
-        factors.append(L)
-    else:
+    if np.isfinite(G).all() and np.all(lam > 0):
+        for c in range(G.shape[0]):
+            t = k * 1e-13 * float(np.trace(G[c]))
+            if _potrf(G[c] - t * eye, lower=1, clean=0)[1] != 0:
+                break
+            L, info = _potrf(G[c] + lam[c] * eye, lower=1, clean=0)
+            if info != 0:
+                break
+            factors.append(L)
+    if len(factors) == G.shape[0]:
         def solve_chol(rhs):
             return np.stack([_potrs(L, rhs[c], lower=1)[0] for c, L in enumerate(factors)])
         return solve_chol, lam
