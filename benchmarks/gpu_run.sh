@@ -8,6 +8,8 @@
 #              traced light), gpu_profile.py, peers.py
 #   renderers  `photoreg bench renderers --device cuda` on RENDER_SCENES (a scene cache made here with
 #              `photoreg bench renderers`, e.g. ~/.cache/photoreg/bench_scenes)
+#   blas       the solve's BLAS threads (OPENBLAS_NUM_THREADS 1, 4, 16) at stride 4 / 64 rays / 3 bands
+#              and on the demo with its traced light
 #   sweep      `photoreg bench sweep --device cuda` on SWEEP_SCENES (recordings with lighting_gt.json
 #              made here with `photoreg synth`); VOXELS (default 0.01,0.02) restricts it to fit one call
 set -euo pipefail
@@ -39,6 +41,13 @@ for step in "$@"; do
       python3 benchmarks/gpu_profile.py "$rec" --device cuda --json "$out/profile_cuda.json"
       # Peers in the same run: Warp ray cast vs Open3D ray_cast, Warp visibility vs Embree.
       python3 benchmarks/peers.py "$rec" --device cuda --json "$out/peers_cuda.json" ;;
+    blas)
+      for n in 1 4 16; do
+        OPENBLAS_NUM_THREADS=$n python3 -m photoreg bench speed "$rec" --device cuda --frames 0:30 --warmup 3 \
+          --stride 4 --rays 64 --bands 3 --json "$out/blas${n}_s4_r64_b3.json" 2>/dev/null
+        OPENBLAS_NUM_THREADS=$n python3 -m photoreg bench speed data/demo --device cuda --frames 0:30 --warmup 3 \
+          --stride 4 --rays 64 --bands 5 --json "$out/blas${n}_demo_sun.json" 2>/dev/null
+      done ;;
     renderers)
       mkdir -p "$out/renderers"
       python3 -m photoreg bench renderers --device cuda --synth-dir "$RENDER_SCENES" \

@@ -28,6 +28,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 os.environ.setdefault("PHOTOREG_WARP_CACHE", str(REPO / ".cache" / "warp"))
 
+import photoreg  # noqa: E402,F401  (first: its BLAS thread setting must precede numpy)
 import numpy as np  # noqa: E402
 
 from photoreg.bench import metrics  # noqa: E402

@@ -26,7 +26,7 @@ from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
-os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")   # as the CLI on few cores (photoreg/cli.py)
+import photoreg  # noqa: E402,F401  (first: its BLAS thread setting, as the CLI's, must precede numpy)
 
 import numpy as np  # noqa: E402
 

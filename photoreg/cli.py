@@ -3,16 +3,9 @@ from __future__ import annotations
 
 import argparse
 import importlib
-import os
 import sys
 
-# On a few cores a threaded BLAS only contends with the renderer and Warp (measured: solve 37 ms -> 650 ms
-# on 2 cores with objects in the session); on many it pays (H100 host, 16 cores: solve 13 ms threaded,
-# 108 ms on one thread). Set before numpy loads.
-if (os.cpu_count() or 1) <= 4:
-    os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
-
-from photoreg.config import SHADOW_RENDERERS  # noqa: E402  (after the BLAS setting)
+from photoreg.config import SHADOW_RENDERERS
 
 # subcommand -> "module:function"; the function takes the parsed argparse.Namespace and returns an exit code.
 HANDLERS = {

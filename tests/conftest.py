@@ -4,6 +4,7 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
+import photoreg  # noqa: F401  (before numpy: one BLAS thread on few cores, as the CLI runs)
 import pytest
 
 REPO = Path(__file__).resolve().parents[1]
