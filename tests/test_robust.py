@@ -151,11 +151,8 @@ def test_fast_linear_algebra_matches_the_reference_forms():
         assert np.allclose(got, ref, rtol=1e-12, atol=1e-12)
 
 
-def test_split_by_geometry_cuts_object_off_floor_and_joins_floor_pieces():
-    # A white box on a floor; one chroma region holds the box and a sky-tinted shadow strip of the floor
-    # beside it (the generated tabletop's mixed region). The geometric split must give the box (top and
-    # sides together: convex edges) its own region and return the strip to the floor region (coplanar).
-    rng = np.random.default_rng(2)
+def _box_on_floor(rng):
+    """Samples (points, noisy unit normals, is-box mask) of a 0.2 m box standing on a 1 m floor, 2 cm apart."""
     g = np.arange(-0.5, 0.5, 0.02) + 0.01
     fx, fy = (a.ravel() for a in np.meshgrid(g, g))
     outside = (np.abs(fx) > 0.1) | (np.abs(fy) > 0.1)
@@ -177,13 +174,44 @@ def test_split_by_geometry_cuts_object_off_floor_and_joins_floor_pieces():
     p = np.vstack([floor_p] + box_p)
     n = np.vstack([floor_n] + box_n) + rng.normal(0, 0.03, (len(p), 3))
     n /= np.linalg.norm(n, axis=1, keepdims=True)
-    is_box = np.arange(len(p)) >= len(floor_p)
+    return p, n, np.arange(len(p)) >= len(floor_p)
+
+
+def test_split_by_geometry_cuts_object_off_floor_and_joins_floor_pieces():
+    # A white box on a floor; one chroma region holds the box and a sky-tinted shadow strip of the floor
+    # beside it (the generated tabletop's mixed region). The geometric split must give the box (top and
+    # sides together: convex edges) its own region and return the strip to the floor region (coplanar).
+    p, n, is_box = _box_on_floor(np.random.default_rng(2))
     strip = ~is_box & (p[:, 0] > 0.1) & (p[:, 0] < 0.3) & (np.abs(p[:, 1]) < 0.2)
     labels = np.where(is_box | strip, 1, 0)
     out = alb.split_by_geometry(labels, [1], p, n, 10)
     assert len(np.unique(out[is_box])) == 1 and out[is_box][0] >= 0
     assert (out[strip] == out[~is_box & ~strip][0]).all() and (out[~is_box] != out[is_box][0]).all()
     assert (alb.split_by_geometry(labels, [], p, n, 10) == labels).all()
+
+
+def test_split_off_plane_takes_an_object_out_of_the_floor_region():
+    # The box is a few % of one region with the floor (its shaded faces took the floor's colour), too few to
+    # flag the region as mixed: the largest region keeps its plane, the box becomes a region of its own and
+    # the rounded fillet that fusion makes of the corner at its base (normals half-way) belongs to none.
+    rng = np.random.default_rng(3)
+    p, n, is_box = _box_on_floor(rng)
+    a = np.arange(-0.09, 0.1, 0.02)
+    fillet_p = np.concatenate([np.stack([np.full_like(a, 0.105), a, np.full_like(a, 0.005)], axis=1),
+                               np.stack([a, np.full_like(a, -0.105), np.full_like(a, 0.005)], axis=1)])
+    fillet_n = np.concatenate([np.tile([0.7071, 0.0, 0.7071], (a.size, 1)),
+                               np.tile([0.0, -0.7071, 0.7071], (a.size, 1))])
+    p, n = np.vstack([p, fillet_p]), np.vstack([n, fillet_n])
+    is_fillet = np.arange(len(p)) >= len(is_box)
+    is_box = np.concatenate([is_box, np.zeros(len(fillet_p), dtype=bool)])
+    floor = ~is_box & ~is_fillet
+    out = alb.split_off_plane(np.zeros(len(p), dtype=np.int64), p, n, 10)
+    assert (out[floor] == 0).all() and (out[is_fillet] == -1).all()
+    assert len(np.unique(out[is_box])) == 1 and out[is_box][0] == 1
+    # a region that is one plane, or not mostly a plane, is left as it is
+    assert (alb.split_off_plane(np.where(floor, 0, -1), p, n, 10) == np.where(floor, 0, -1)).all()
+    box_only = np.where(is_box, 0, -1)
+    assert (alb.split_off_plane(box_only, p, n, 10) == box_only).all()
 
 
 def test_regions_recover_lighting_where_one_albedo_fails():

@@ -613,6 +613,7 @@ def solve(radiance, transfer, normals, visible, cfg: SolverConfig, prior=None, m
                 labels = alb.split_by_intensity(labels, np.log(ratio), cfg.intensity_bandwidth, min_count)
                 if pts is not None and normals is not None:
                     labels = _split_mixed(labels, A, I, F, w0 * rw, pts, normals[idx], min_count)
+                    labels = alb.split_off_plane(labels, pts, normals[idx], min_count)
                 m = int(labels.max()) + 1
                 w, regions = w0 * rw * (labels >= 0), _Regions.of(A, I, labels, m, w0)
                 Gm, hm, c0 = regions.grams(w)
