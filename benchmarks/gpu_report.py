@@ -16,6 +16,17 @@ def main() -> None:
     ray, vis = peers["raycast"], peers["visibility"]
     demo = {k: json.loads((HERE / "results" / f"speed_demo_{k}.json").read_text()) for k in ("sun", "nosun")}
     r0 = runs[0]
+    def threads(f: str) -> int:  # results/blas{N}_...json
+        return int(Path(f).name[4:].split("_")[0])
+
+    blas = sorted(glob.glob(str(HERE / "results" / "blas*_s4_r64_b3.json")), key=threads)
+    blas_table = ("| OPENBLAS_NUM_THREADS | TUM stride 4 / 64 rays / 3 bands: frames/s (solve ms) | demo with its traced "
+                  "light: frames/s (solve + sun ms) |\n|---|---|---|\n")
+    for f in blas:
+        t = json.loads(Path(f).read_text())
+        d = json.loads(Path(f.replace("_s4_r64_b3", "_demo_sun")).read_text())
+        blas_table += (f"| {threads(f)} | {t['frames_per_s_median']:.1f} ({t['ms_median']['solve']:.0f}) | "
+                       f"{d['frames_per_s_median']:.1f} ({d['ms_median']['solve'] + d['ms_median']['sun']:.0f}) |\n")
     rows = [f"| {r['stride']} | {r['rays']} | {r['bands']} | {r['frames_per_s']:.1f} | {r['frames_per_s_median']:.1f} | "
             + " | ".join(f"{r['ms_mean'].get(k, 0.0):.1f}" for k in STAGES) + " |" for r in runs]
     (HERE / "gpu.md").write_text(f"""# GPU figures
@@ -45,12 +56,21 @@ buffer allocated late, a kernel module loaded after the warm-up: one stride-1 fr
 bottleneck: fuse + ray cast + transfer take a few ms at every stride, and the samples are a random subset of
 at most 8000 pixels drawn before the transfer (so stride 1 traces no more rays than stride 4). The host-side
 robust solve (numpy: IRLS over up to 8000 samples alternating F and per-region albedos until F moves less
-than 1%, at most 12 times) takes {min(r['ms_mean']['solve'] for r in runs):.0f}-{max(r['ms_mean']['solve'] for r in runs):.0f} ms and sets the rate; it varies by about 20% between calls on the
-same machine (stride 4 / 64 rays / 3 bands: 18.0 and 15.4 frames/s in two calls on 2026-11-24). The issue's goals
-(60 frames/s at stride 1, 120 at stride 4) are not met; moving the solve onto the GPU is the next step.
+than 1%, at most 12 times) takes {min(r['ms_mean']['solve'] for r in runs):.0f}-{max(r['ms_mean']['solve'] for r in runs):.0f} ms (means; 25-39 ms in the other calls) and sets the rate. Figures move by 20-40% between
+machines and calls: stride 4 / 64 rays / 3 bands gave 15.4 and 18.0 frames/s in two calls on 2026-11-24
+(morning), 17.0, 21.6 and 23.5 in three calls after the solve was made 1.5x faster (`benchmarks/solve_speed.py`: same
+results, 1.5-1.75x on the 2-core CPU; the last two are the BLAS rows below) and the table's figure on a fresh machine
+whose Warp and Open3D ray casts also ran 1.3-1.8x slower than in the other calls. The issue's goals
+(60 frames/s at stride 1, 120 at stride 4) are not met; the solve has to move onto the GPU or need fewer
+alternations (a convergent albedo step) first.
 Where a light is held (the demo, {demo['sun']['size']}, stride 4, 64 rays, 5 bands) the second, joint solve costs
 again as much: {demo['sun']['frames_per_s']:.1f} frames/s ('sun' {demo['sun']['ms_mean']['sun']:.0f} ms, 'solve' {demo['sun']['ms_mean']['solve']:.0f} ms) against
 {demo['nosun']['frames_per_s']:.1f} with `--no-sun --no-bounce` in the same call.
+
+## BLAS threads for the host-side solve (`gpu_run.sh ... blas`, one call, 2026-11-24; median frames)
+{blas_table}
+photoreg leaves numpy's BLAS threaded on hosts with more than 4 cores (photoreg/__init__.py) and uses one
+thread on 4 or fewer, where threads only contend with Warp and the renderer.
 
 ## Inside the fuse and ray-cast stages (`benchmarks/gpu_profile.py`, synchronised medians of 10; 2026-11-24 run)
 | integrate | integrate + dense brick export | ray cast stride 1 (with host copies) | its host copies | ray cast stride 4 | its host copies |
