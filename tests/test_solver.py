@@ -131,6 +131,13 @@ def test_weights_equalise_bins():
     # Per-bin weight: every populated bin carries the same total.
     w = bin_weights(np.array([[0, 0, 1.0]] * 9 + [[1.0, 0, 0]]), 8)
     np.testing.assert_allclose(w, [10 / 18] * 9 + [5.0])
+    # Counted per group (albedo region): a box top (group 1) no longer shares the floor's bin, so its two
+    # samples carry as much as the seven floor samples; cells are (group, bin) and each carries the same total.
+    groups = np.array([0] * 7 + [1] * 2 + [1])
+    w = bin_weights(np.array([[0, 0, 1.0]] * 9 + [[1.0, 0, 0]]), 8, groups=groups)
+    np.testing.assert_allclose([w[:7].sum(), w[7:9].sum(), w[9]], [10 / 3] * 3)
+    # Group labels are any integers (-1: samples in no region form a group of their own).
+    np.testing.assert_allclose(bin_weights(np.array([[0, 0, 1.0]] * 9 + [[1.0, 0, 0]]), 8, groups=groups - 1), w)
 
 
 CLUSTER_CASES = [("floor95", False, 0.02), ("floor95", True, 0.02), ("tabletop", True, 0.02), ("tilted95", True, 0.1)]

@@ -137,6 +137,39 @@ def test_no_light_is_claimed_without_shadows():
     assert found is None
 
 
+def test_a_light_that_reaches_only_a_few_samples_is_not_claimed():
+    """Sky only, one albedo, and 30 of 2530 samples (facing down, under a floor that hides everything below
+    the horizon from the rest) lit from below: their residual is all there is to explain, so with no
+    minimum lit share the search claims that light; by default (min_lit) it claims none, and with a real
+    sun added it finds the sun."""
+    k = 30
+    down, stray = unit([0.7, 0.0, -0.7]), np.tile(unit([0.7, 0.1, -0.5]), (k, 1))
+    for strength in (0.0, 3.0):
+        radiance, transfer, normals, _, sky, _, (axis, cos_r) = model_samples(
+            np.random.default_rng(1), sun_strength=strength, albedos=((0.8, 0.8, 0.8),) * 2)
+        n = len(normals)
+        t_stray = sh.unoccluded_transfer(stray, 5) * 0.3
+        lit = 0.8 * (t_stray @ sky.T + np.outer(direct_transfer(np.ones((k, 1), bool), stray, down[None])[:, 0],
+                                                 [2.0, 2.0, 2.0]))
+        radiance, transfer, normals = np.vstack([radiance, lit]), np.vstack([transfer, t_stray]), np.vstack([normals, stray])
+
+        def trace(idx, dirs):
+            out = np.zeros((len(idx), len(dirs)), dtype=bool)
+            real = idx < n
+            out[real] = visible(normals[idx[real]], axis[idx[real]], cos_r[idx[real]], dirs) & (dirs[:, 2] > 0)
+            out[~real] = down @ dirs.T > 0.95
+            return out
+
+        sol = solve(radiance, transfer, normals, np.ones(n + k), SolverConfig(bands=5, loss="huber", albedo="single"))
+        found = {lit: SunSearch(SunConfig(min_lit=lit))(trace, sol, radiance, lambda idx: transfer[idx], normals)
+                 for lit in (0.0, SunConfig().min_lit)}
+        if strength == 0:
+            assert found[0.0] is not None and found[0.0].direction @ down > 0.9
+            assert found[SunConfig().min_lit] is None
+        else:
+            assert math.degrees(math.acos(min(1.0, found[SunConfig().min_lit].direction @ SUN))) < 2.0
+
+
 def test_traced_light_splits_F_into_the_disc_and_the_rest():
     F = np.zeros((3, 25))
     F[:, 0] = 0.5

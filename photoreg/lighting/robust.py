@@ -17,7 +17,8 @@ The fit alternates, at most cfg.iterations times and until F moves less than cfg
   3. robust weights from the luminance residuals e_i scaled by 1.4826 * MAD (cfg.loss: Huber or
      Tukey's biweight): specular highlights, unexplained shadows, colour-depth misalignment and stray
      normals stop pulling the estimate.
-Sample weights are the normal-distribution weights (solver.normal_weights) times the robust weights.
+Sample weights are the normal-distribution weights (solver.normal_weights, counted per first-pass colour
+region with cfg.region_weights) times the robust weights.
 
 Extra terms (Term): known per-sample columns t_j with one unregularised coefficient e_j >= 0 per channel,
 I_i = rho * (R_i . F + sum_j e_j t_ij); the SH part keeps the Tikhonov term. Two are used:
@@ -141,13 +142,13 @@ class _Setup:
 
     key: tuple           # the settings they were computed with (_setup_key)
     samples: np.ndarray  # indices of the fitted samples
-    w0: np.ndarray       # normal_weights of the samples (before any hold-out)
-    labels: np.ndarray   # the first-pass regions
+    w0: np.ndarray       # normal_weights of the samples, per first-pass region (before any hold-out)
+    labels: np.ndarray | None  # the first-pass regions (None: one albedo)
 
 
 def _setup_key(cfg: SolverConfig, min_count: int) -> tuple:
     return (cfg.weighting, cfg.grid_bins, cfg.density_bandwidth, cfg.bin_min_fraction, cfg.seed, cfg.albedo,
-            cfg.chroma_bandwidth, min_count)
+            cfg.chroma_bandwidth, min_count, cfg.region_weights)
 
 
 @dataclass
@@ -574,9 +575,9 @@ def solve(radiance, transfer, normals, visible, cfg: SolverConfig, prior=None, m
     key = _setup_key(cfg, min_count)
     setup = start.setup if start is not None else None
     if setup is None or setup.key != key or not np.array_equal(setup.samples, idx):
-        setup = _Setup(key, idx, normal_weights(normals[idx], cfg), None)
-        if cfg.albedo == "regions":
-            setup.labels = alb.cluster(alb.colour_features(I, with_intensity=False), cfg.chroma_bandwidth, min_count)
+        first = (alb.cluster(alb.colour_features(I, with_intensity=False), cfg.chroma_bandwidth, min_count)
+                 if cfg.albedo == "regions" else None)
+        setup = _Setup(key, idx, normal_weights(normals[idx], cfg, first), first)
     w0 = setup.w0
     held = np.zeros(n, dtype=bool)
     if cfg.holdout_fraction > 0 and n >= 20:

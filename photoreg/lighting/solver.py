@@ -14,6 +14,11 @@ rest of the sphere from a handful of samples.
   * "density": inverse kernel density of normals on the sphere (von Mises-Fisher kernel of
     `density_bandwidth` radians) - the same idea without bin edges.
   * "none": every sample weighs the same.
+With per-region albedo (photoreg.lighting.robust) the bins are counted per albedo region when
+`region_weights` is on: each (region, bin) cell carries the same weight. A region's albedo is free, so
+only the spread of normals within a region tells F's shape; with one histogram for all regions the
+top of a box shares the floor's bin and weighs nothing, and the light's zenith-to-horizon colour is
+left to the colour balance rule.
 
 The system is solved through the SVD of the weighted design sqrt(W) A with Tikhonov filter factors
 s / (s^2 + lambda), i.e. exactly the least-squares solution of the stacked system
@@ -81,6 +86,7 @@ class SolverConfig:
     max_bands: int = 5                 # largest band count tried by `select`
     lambdas: tuple = (1e-3, 3e-3, 1e-2, 3e-2, 1e-1)  # relative regularisations tried by `select`
     holdout_fraction: float = 0.0      # share of samples kept out of the fit to report a held-out residual
+    region_weights: bool = False       # weighting "bins": normals counted per albedo region (module docstring)
 
     def __post_init__(self) -> None:
         if self.bands < 1:
@@ -111,7 +117,7 @@ class SolverConfig:
                    min_visible=lc.min_visible, mode=lc.mode, bin_min_fraction=lc.bin_min_fraction, loss=lc.loss,
                    albedo=lc.albedo, albedo_reference=lc.albedo_reference, albedo_step=lc.albedo_step,
                    reference_albedo=lc.reference_albedo, select=lc.select,
-                   max_bands=lc.max_bands, max_samples=lc.max_samples)
+                   max_bands=lc.max_bands, max_samples=lc.max_samples, region_weights=lc.region_weights)
 
     @property
     def robust(self) -> bool:
@@ -125,13 +131,15 @@ class SolverConfig:
         return self.max_bands if self.select != "fixed" else self.bands
 
 
-def bin_weights(normals: np.ndarray, grid_bins: int, min_fraction: float = 0.0) -> np.ndarray:
+def bin_weights(normals: np.ndarray, grid_bins: int, min_fraction: float = 0.0,
+                groups: np.ndarray | None = None) -> np.ndarray:
     """Per-sample weights 1/(Q_c * P) on an equal-area grid of normals, rescaled to mean 1.
 
     Bins are equal-area: `grid_bins` bands uniform in z = cos(theta) times 2*grid_bins uniform in
     azimuth, so an even spread of normals gives even counts. With min_fraction > 0 a bin holding
     Q_c < min_fraction * N samples carries only Q_c / (min_fraction * N) of a full bin's weight, so
-    that a handful of stray normals cannot outweigh a well-sampled surface.
+    that a handful of stray normals cannot outweigh a well-sampled surface. With `groups` (N,) integer
+    labels (albedo regions) the bins are counted per group: c runs over (group, bin) cells.
     """
     n = np.asarray(normals, dtype=np.float64)
     if n.shape[0] == 0:
@@ -139,7 +147,11 @@ def bin_weights(normals: np.ndarray, grid_bins: int, min_fraction: float = 0.0) 
     iz = np.clip(((n[:, 2] + 1.0) * 0.5 * grid_bins).astype(np.int64), 0, grid_bins - 1)
     phi = np.arctan2(n[:, 1], n[:, 0])  # [-pi, pi]
     ip = np.clip(((phi + np.pi) / (2 * np.pi) * 2 * grid_bins).astype(np.int64), 0, 2 * grid_bins - 1)
-    _, inverse, counts = np.unique(iz * (2 * grid_bins) + ip, return_inverse=True, return_counts=True)
+    cell = iz * (2 * grid_bins) + ip
+    if groups is not None:
+        g = np.asarray(groups, dtype=np.int64)
+        cell = cell + (g - g.min()) * (2 * grid_bins * grid_bins)
+    _, inverse, counts = np.unique(cell, return_inverse=True, return_counts=True)
     share = np.minimum(1.0, counts / (min_fraction * n.shape[0])) if min_fraction > 0 else np.ones(len(counts))
     w = share[inverse] / counts[inverse]
     return w * (len(w) / w.sum())
@@ -200,11 +212,12 @@ def regularized_lstsq(design: np.ndarray, rhs: np.ndarray, lam: float, prior: np
         return x_s * (cb / ca), s * ca
 
 
-def normal_weights(normals: np.ndarray, cfg: SolverConfig) -> np.ndarray:
-    """Sample weights (mean 1) from the distribution of the (non-zero) normals, by cfg.weighting."""
+def normal_weights(normals: np.ndarray, cfg: SolverConfig, groups: np.ndarray | None = None) -> np.ndarray:
+    """Sample weights (mean 1) from the distribution of the (non-zero) normals, by cfg.weighting; "bins"
+    counts them per group (albedo region) when groups are given and cfg.region_weights is on."""
     nrm = normals / np.linalg.norm(normals, axis=1, keepdims=True)
     if cfg.weighting == "bins":
-        return bin_weights(nrm, cfg.grid_bins, cfg.bin_min_fraction)
+        return bin_weights(nrm, cfg.grid_bins, cfg.bin_min_fraction, groups if cfg.region_weights else None)
     if cfg.weighting == "density":
         return density_weights(nrm, cfg.density_bandwidth, cfg.seed)
     return np.ones(nrm.shape[0])
