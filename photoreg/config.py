@@ -63,7 +63,7 @@ class LightingConfig:
     max_samples: int = 8000       # random subsample of the usable samples per solve (solve time is linear in it)
     bin_min_fraction: float = 0.01  # normal bins with fewer samples than this share get less weight
     # Normal bins counted per albedo region (photoreg.lighting.solver): generated tabletops' mean si-RMSE
-    # 0.169 -> 0.115 (benchmarks/lighting_accuracy.md).
+    # 0.169 -> 0.115 (benchmarks/lighting_accuracy.py --ablations: rows "no region weights").
     region_weights: bool = True
     max_normal_angle: float = 30.0  # degrees: drop samples whose fused normal disagrees with the frame's depth
     max_depth_gap_voxels: float = 3.0  # ... or whose fused surface is this far from the frame's depth

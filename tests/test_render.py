@@ -172,7 +172,7 @@ def test_demo_lighting_against_the_path_tracer(demo_run):
     """The run's lighting (frames 0-20) against the generator's environment (Mitsuba, an independent
     renderer): median irradiance si-RMSE over the upper hemisphere 0.081 with the normal bins counted per
     albedo region (lighting.region_weights), 0.109 without (one histogram: the white box's top shares the
-    floor's bin and weighs nothing; benchmarks/lighting_accuracy.md)."""
+    floor's bin and weighs nothing; benchmarks/lighting_accuracy.py, ablation "no region weights")."""
     from photoreg.bench.score import score
 
     m = score(demo_run, REPO / "data" / "demo")["lighting"]["metrics"]

@@ -161,8 +161,8 @@ def test_a_light_that_reaches_only_a_few_samples_is_not_claimed():
             return out
 
         sol = solve(radiance, transfer, normals, np.ones(n + k), SolverConfig(bands=5, loss="huber", albedo="single"))
-        found = {lit: SunSearch(SunConfig(min_lit=lit))(trace, sol, radiance, lambda idx: transfer[idx], normals)
-                 for lit in (0.0, SunConfig().min_lit)}
+        found = {share: SunSearch(SunConfig(min_lit=share))(trace, sol, radiance, lambda idx: transfer[idx], normals)
+                 for share in (0.0, SunConfig().min_lit)}
         if strength == 0:
             assert found[0.0] is not None and found[0.0].direction @ down > 0.9
             assert found[SunConfig().min_lit] is None
