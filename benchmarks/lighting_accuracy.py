@@ -40,7 +40,7 @@ from photoreg.synth.scenes import SCENE_KINDS  # noqa: E402
 PAPER = dict(bands=3, loss="none", albedo="single", select="fixed", bin_min_fraction=0.0, max_normal_angle=180.0,
              sun=False, bounce=False,
              max_samples=20000,
-             max_depth_gap_voxels=float("inf"), temporal=False, exposure=False)
+             max_depth_gap_voxels=float("inf"), temporal=False, history=0, exposure=False)
 METHODS = {"paper": PAPER, "robust": {}}
 ABLATIONS = {  # one change each against the defaults, on the recordings with ground truth
     "defaults": {}, "select gcv": {"select": "gcv"}, "select holdout": {"select": "holdout"},
@@ -49,12 +49,13 @@ ABLATIONS = {  # one change each against the defaults, on the recordings with gr
     "albedo_reference mean": {"albedo_reference": "mean"}, "albedo_reference largest": {"albedo_reference": "largest"},
     "no sample checks": {"max_normal_angle": 180.0, "max_depth_gap_voxels": float("inf")},
     "bin_min_fraction 0": {"bin_min_fraction": 0.0}, "no region weights": {"region_weights": False},
-    "no temporal filter": {"temporal": False},
+    "no temporal filter": {"temporal": False},  # and so no history (its change test empties the history)
+    "no history": {"history": 0},
     "no exposure gain": {"exposure": False}, "no traced sun": {"sun": False}, "no bounce": {"bounce": False},
     "albedo_step joint": {"albedo_step": "joint"}, "sun_regularization 0.05": {"sun_regularization": 0.05},
     "albedo_step joint, sun_regularization 0.05": {"albedo_step": "joint", "sun_regularization": 0.05},
 }
-REAL_ABLATIONS = ("defaults", "no temporal filter", "no exposure gain")  # also run on the real recordings
+REAL_ABLATIONS = ("defaults", "no temporal filter", "no history", "no exposure gain")  # also run on the real recordings
 # Variants of the scene kinds (other sun azimuth and seed, a handheld camera, the issues' 640x480): the table's
 # scenes alone over-fitted choices made on them (tabletop 0.133 / 0.152 / 0.189-0.209 at 320x240 / 640x480 /
 # other azimuths before region_weights). (name, kind, extra `photoreg synth` arguments, size or None: --size)
@@ -64,7 +65,7 @@ VARIANTS = [("tabletop, sun azimuth 150", "tabletop", ["--yaw", "120", "--seed",
             ("tabletop, 640x480", "tabletop", [], "640x480"),
             ("coloured, sun azimuth 150", "coloured", ["--yaw", "120", "--seed", "1"], None),
             ("corner, sun behind the walls", "corner", ["--yaw", "200", "--seed", "3"], None)]
-VARIANT_ABLATIONS = ("defaults", "no region weights", "bands 3", "sun_regularization 0.05")
+VARIANT_ABLATIONS = ("defaults", "no history", "no region weights", "bands 3", "sun_regularization 0.05")
 HOLDOUT = 0.2
 START, END = "<!-- generated:start -->", "<!-- generated:end -->"
 

@@ -118,6 +118,7 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--ray-length", type=float)
     b.add_argument("--threads", type=int, help="CPU threads for the split kernel launches (default: all cores)")
     b.add_argument("--no-sun", action="store_true", help="without the traced light (lighting.sun = false)")
+    b.add_argument("--no-history", action="store_true", help="the current view's samples only (lighting.history = 0)")
     b.add_argument("--no-bounce", action="store_true", help="without the bounce term (lighting.bounce = false)")
     b.add_argument("--json", dest="json_out", help="write the figures to this JSON file")
     b = bsub.add_parser("sweep", help="speed against lighting error over stride x rays x bands x voxel size "

@@ -70,6 +70,9 @@ class LightingConfig:
     temporal: bool = True         # Kalman filter of the SH across frames (photoreg.lighting.temporal)
     process_noise: float = 0.02   # filter random-walk step, share of a frame's measurement variance
     change_threshold: float = 1.0  # restart the filter when the prediction fits (1 + this) x worse than usual
+    # Samples of earlier frames solved with the current ones (photoreg.lighting.history): a random subset of at
+    # most this many in which older views fade, 0 = the current view only.
+    history: int = 8000
     exposure: bool = True         # per-frame gain against the fused radiance (auto-exposure)
     bounce: bool = True           # one bounce in the model: directions blocked by real geometry see radiance e
     sun: bool = True              # trace the dominant light apart from the SH (photoreg.lighting.sun; fixed bands)
@@ -247,6 +250,7 @@ def validate(s: Session) -> None:
               (0 <= L.bin_min_fraction < 1, "lighting.bin_min_fraction must be in [0, 1)"),
               (0 < L.max_normal_angle <= 180, "lighting.max_normal_angle must be in (0, 180]"),
               (L.max_depth_gap_voxels > 0, "lighting.max_depth_gap_voxels must be > 0"),
+              (L.history >= 0, "lighting.history must be >= 0"),
               (L.process_noise >= 0 and L.change_threshold > 0,
                "lighting.process_noise must be >= 0 and lighting.change_threshold > 0"),
               (s.render.light_rays >= 0, "render.light_rays must be >= 0"),

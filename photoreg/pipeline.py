@@ -2,7 +2,8 @@
 
 Every stage is timed; timings travel with the FrameResult. Lighting samples are the pixels
 (r*stride, c*stride); the observed radiance there is a box average centred on the pixel (less
-noise at no extra cost) and a sample is used only when its whole box is usable.
+noise at no extra cost) and a sample is used only when its whole box is usable. The solve also
+takes samples of earlier views (photoreg.lighting.history, lighting.history).
 """
 from __future__ import annotations
 
@@ -19,10 +20,11 @@ from .kernels.raycast import raycast_surface
 from .kernels.transfer import make_direction_set, radiance_transfer, visibility
 from .lighting import sh
 from .lighting.exposure import ExposureTracker
+from .lighting.history import Samples, SampleHistory
 from .lighting.robust import Term, bounce_term, solve
 from .lighting.samples import agreement
 from .lighting.solver import SolverConfig
-from .lighting.sun import SunConfig, SunSearch, disc_rays, sun_term
+from .lighting.sun import Sun, SunConfig, SunSearch, disc_rays, sun_term
 from .lighting.temporal import FilterConfig, LightingFilter
 from .preprocess import Prepared, prepare
 from .recon.fusion import FusionConfig, TSDFVolume
@@ -50,6 +52,7 @@ class Pipeline:
         self.filter = (LightingFilter(self.solver_cfg.fit_bands, FilterConfig(lc.process_noise, lc.change_threshold))
                        if lc.temporal else None)
         self.exposure = ExposureTracker(cell=2 * rc.voxel_size) if lc.exposure else None
+        self.history = SampleHistory(lc.history, seed=self.solver_cfg.seed) if lc.history else None  # earlier views
         self.tracker = None
         if not session.recording.use_poses:
             from .recon.tracking import Tracker
@@ -110,31 +113,63 @@ class Pipeline:
         r, c = r[ok], c[ok]
         return radiance[r, c], maps.vertex[r, c], maps.normal[r, c]
 
-    def _with_sun(self, grid, radiance, transfer, points, normals, visible, sol, previous, terms: list[Term]):
-        """(sun, solution): the frame's dominant light (photoreg.lighting.sun) and the joint solve with it, or
-        (None, sol) when the solution `sol` without it (with `terms`) needs none."""
+    def _terms(self, data: Samples) -> list[Term]:
+        """The solve's extra terms other than the traced light: the bounce (lighting.bounce)."""
+        return [bounce_term(data.transfer, data.radiance)] if self.bounce else []
+
+    def _solve(self, data: Samples, previous, grid=None, sun: Sun | None = None, start=None):
+        """The robust solve of `data` with the bounce term, and with the traced light `sun` (its disc traced
+        through `grid` from every sample) when given; `start`: the solve of the same samples without it."""
+        lc = self.session.lighting
+        terms = self._terms(data)
+        cfg = self.solver_cfg
+        if sun is not None:
+            disc = disc_rays(sun, self.sun.cfg.rays).astype(np.float32)
+            seen = visibility(grid, data.points, data.normals, disc, lc.ray_offset_voxels *
+                              self.session.reconstruction.voxel_size, lc.ray_length)
+            terms.append(sun_term(sun, seen, data.normals, disc, cfg.fit_bands))
+            # the SH part of the joint solve holds only what the traced light leaves: regularised more (config.py)
+            cfg = dataclasses.replace(cfg, regularization=lc.sun_regularization)
+        return solve(data.radiance, data.transfer, data.normals, data.visible, cfg, points=data.points,
+                     reference=previous, terms=terms, start=start)
+
+    def _find_sun(self, grid, current: Samples, sol) -> Sun | None:
+        """The dominant light (photoreg.lighting.sun) from the current view's samples and their solve `sol`."""
         lc, rc = self.session.lighting, self.session.reconstruction
         offset = lc.ray_offset_voxels * rc.voxel_size
+        terms = self._terms(current)
 
         def trace(idx, dirs):
-            return visibility(grid, points[idx], normals[idx], dirs.astype(np.float32), offset, lc.ray_length)
+            return visibility(grid, current.points[idx], current.normals[idx], dirs.astype(np.float32), offset,
+                              lc.ray_length)
 
         def design(idx):
-            return np.hstack([transfer[idx, :self.solver_cfg.fit_bands ** 2]] + [t.transfer[idx, None] for t in terms])
+            return np.hstack([current.transfer[idx, :self.solver_cfg.fit_bands ** 2]] +
+                             [t.transfer[idx, None] for t in terms])
 
-        sun = self.sun(trace, sol, radiance, design, normals)
-        if sun is None:
-            return None, sol
-        disc = disc_rays(sun, self.sun.cfg.rays).astype(np.float32)
-        light = sun_term(sun, visibility(grid, points, normals, disc, offset, lc.ray_length), normals, disc,
-                         self.solver_cfg.fit_bands)
-        # the SH part of the joint solve holds only what the traced light leaves: regularised more (config.py)
-        cfg = dataclasses.replace(self.solver_cfg, regularization=lc.sun_regularization)
-        joint = solve(radiance, transfer, normals, visible, cfg, points=points, reference=previous,
-                      terms=terms + [light], start=sol)
-        if not joint.terms["sun"] @ sh.LUMINANCE > 0:
-            return None, sol
-        return sun, joint
+        return self.sun(trace, sol, current.radiance, design, current.normals)
+
+    def _lighting(self, grid, current: Samples, data: Samples, previous, t: dict[str, float]):
+        """(sun, solution, the current view's own solve): the lighting of the samples `data` (the current
+        view's, or those and the history's), jointly with the traced light when one is held. The light is
+        searched from the current view's samples and their own solve (its shadows; the history's samples
+        would dilute them)."""
+        with self._timed(t, "solve"):
+            own = self._solve(current, previous)
+        sun = None
+        if self.sun is not None:
+            with self._timed(t, "sun"):
+                sun = self._find_sun(grid, current, own)
+        if sun is not None:
+            with self._timed(t, "sun"):
+                joint = self._solve(data, previous, grid, sun, start=own if data is current else None)
+            if joint.terms["sun"] @ sh.LUMINANCE > 0:
+                return sun, joint, own
+            sun = None
+        if data is current:
+            return sun, own, own
+        with self._timed(t, "solve"):
+            return sun, self._solve(data, previous), own
 
     def process(self, frame: Frame) -> FrameResult:
         """Run every stage on one frame; a weak or empty frame still yields a finite estimate."""
@@ -173,16 +208,10 @@ class Pipeline:
                                        offset=lc.ray_offset_voxels * rc.voxel_size, ray_length=lc.ray_length)
             with self._timed(t, "solve"):
                 gain = self.exposure.gain(points, radiance)[0] if self.exposure is not None else 1.0
-                radiance = radiance / gain
+                current = Samples(radiance / gain, tr.transfer, normals, points, tr.visible_fraction)
+                data = self.history.with_current(current) if self.history is not None else current
                 previous = self.filter.prediction() if self.filter is not None else self.prev_F
-                terms = [bounce_term(tr.transfer, radiance)] if self.bounce else []
-                sol = solve(radiance, tr.transfer, normals, tr.visible_fraction, self.solver_cfg, points=points,
-                            reference=previous, terms=terms)
-            sun = None
-            if self.sun is not None:
-                with self._timed(t, "sun"):
-                    sun, sol = self._with_sun(grid, radiance, tr.transfer, points, normals, tr.visible_fraction,
-                                              sol, previous, terms)
+            sun, sol, own = self._lighting(grid, current, data, previous, t)
             with self._timed(t, "solve"):
                 F, diag = sol.lighting, sol.diagnostics
                 if sun is not None:
@@ -194,8 +223,15 @@ class Pipeline:
                 if self.filter is not None:
                     filtered, diag.change_detected = self.filter.update(sol)
                     F = Lighting(filtered)
+                if self.history is not None:  # keep the samples the view's own solve fitted, if it had enough
+                    if own.diagnostics.n_samples >= self.solver_cfg.min_samples_factor * self.solver_cfg.fit_bands ** 2:
+                        self.history.add(current.take(own.samples[own.weights > 0]))
+                    elif data is not current:  # a black, saturated or hole-ridden view
+                        diag.weak = True
+                        diag.notes.append("too few usable samples in this view: the lighting rests on earlier "
+                                          "views' samples")
                 if self.exposure is not None:
-                    self.exposure.update(points, radiance)
+                    self.exposure.update(points, current.radiance)
             if self.render is not None:
                 with self._timed(t, "render"):
                     composite = self.render(prep.linear, prep.depth, grid, maps, pose, F.sh, gain, diag.sun)

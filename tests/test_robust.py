@@ -631,7 +631,8 @@ def test_generated_split_albedo_recording(tmp_path):
 def test_pipeline_exposure_gain_keeps_the_lighting_scale():
     """Auto-exposure: the same static scene with the camera gain stepping 1 -> 1.6 -> 0.7. With the
     exposure gain the lighting's scale stays (band 0 within 15%: clipping at 1.6 and the black level at 0.7
-    change which samples are usable); without it, it jumps with the camera. One albedo, so that regions
+    change which samples are usable); without it (and without the history of samples, which would average
+    the earlier frames' scale in) it jumps with the camera. One albedo, so that regions
     appearing with the clipped red box do not move the scale; no traced sun: tests/scenes.py renders
     without cast shadows, which a traced light assumes (its strength then trades with the SH)."""
     from scenes import look_at, render
@@ -643,7 +644,7 @@ def test_pipeline_exposure_gain_keeps_the_lighting_scale():
     gains = [1.0, 1.0, 1.0, 1.6, 1.6, 0.7, 0.7]
     band0 = {}
     for exposure in (True, False):
-        pipe = _pipeline(k, exposure=exposure, albedo="single", sun=False)
+        pipe = _pipeline(k, exposure=exposure, albedo="single", sun=False, history=8000 if exposure else 0)
         band0[exposure] = []
         for i, g in enumerate(gains):
             pose = look_at(np.array([1.2 * np.sin(0.05 * i), -1.2 * np.cos(0.05 * i), 0.8]), np.array([0.0, 0.0, 0.1]))

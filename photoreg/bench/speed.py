@@ -61,7 +61,7 @@ def bench_recording(session: Session, warmup: int = 2) -> dict:
         "threads": cpu_threads() if pipe.device == "cpu" else 0,
         "size": f"{rec.intrinsics.width}x{rec.intrinsics.height}", "frames_timed": len(timings),
         "stride": L.stride, "rays": L.rays, "bands": L.bands, "voxel_size": session.reconstruction.voxel_size,
-        "ray_length": L.ray_length, "sun": L.sun, "bounce": L.bounce,
+        "ray_length": L.ray_length, "sun": L.sun, "bounce": L.bounce, "history": L.history,
         "ms_mean": {s: round(float(np.mean([t[s] for t in timings])), 3) for s in stages},
         "ms_p95": {s: round(float(np.percentile([t[s] for t in timings], 95)), 3) for s in stages},
         "ms_median": {s: round(float(np.median([t[s] for t in timings])), 3) for s in stages},
@@ -86,11 +86,13 @@ def speed_command(args) -> int:
     if args.ray_length:
         s.lighting.ray_length = args.ray_length
     s.lighting.sun, s.lighting.bounce = not args.no_sun, not args.no_bounce
+    if args.no_history:
+        s.lighting.history = 0
     validate(s)
     res = bench_recording(s, warmup=args.warmup)
     stages = "  ".join(f"{k} {v:.1f}" for k, v in res["ms_mean"].items())
     print(f"{res['device_name']} ({res['device']}, {res['threads']} CPU threads), {res['size']} stride {res['stride']} rays {res['rays']} "
-          f"bands {res['bands']}, sun {res['sun']}, bounce {res['bounce']}: {res['frames_per_s']} frames/s "
+          f"bands {res['bands']}, sun {res['sun']}, bounce {res['bounce']}, history {res['history']}: {res['frames_per_s']} frames/s "
           f"(median frame: {res['frames_per_s_median']})\n  mean ms: {stages}")
     if args.json_out:
         write_json(args.json_out, res)
