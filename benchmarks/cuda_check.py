@@ -1,6 +1,7 @@
 """CUDA correctness: the same frames through the pipeline on CPU and on CUDA must agree.
 
-usage: python benchmarks/cuda_check.py RECORDING [FRAMES]   (prints one JSON object)
+usage: python benchmarks/cuda_check.py RECORDING [FRAMES] [HISTORY]   (prints one JSON object; HISTORY:
+lighting.history, default the session's)
 Compares, per frame, the SH estimate (relative difference), the dominant direction (degrees),
 and the Warp ray-cast depth of the last frame (fraction of pixels within one voxel).
 """
@@ -15,10 +16,12 @@ from photoreg.kernels.raycast import raycast_surface
 from photoreg.pipeline import Pipeline
 
 
-def run(device: str, rec, frames):
+def run(device: str, rec, frames, history: int | None):
     s = Session()
     s.recording.path = str(rec.path)
     s.device = device
+    if history is not None:
+        s.lighting.history = history
     pipe = Pipeline(s, rec.intrinsics)
     out = [pipe.process(f) for f in iter_frames(rec, frames)]
     last = rec.frame(frames[-1])
@@ -29,14 +32,15 @@ def run(device: str, rec, frames):
 def main() -> None:
     rec = open_recording(sys.argv[1])
     frames = list(range(int(sys.argv[2]) if len(sys.argv) > 2 else 4))
-    cpu, maps_cpu, _ = run("cpu", rec, frames)
-    gpu, maps_gpu, fusion = run("cuda", rec, frames)
+    history = int(sys.argv[3]) if len(sys.argv) > 3 else None
+    cpu, maps_cpu, _ = run("cpu", rec, frames, history)
+    gpu, maps_gpu, fusion = run("cuda", rec, frames, history)
     rel = [float(np.linalg.norm(a.lighting.sh - b.lighting.sh) / np.linalg.norm(a.lighting.sh)) for a, b in zip(cpu, gpu)]
     ang = [float(np.degrees(np.arccos(np.clip(a.dominant_direction @ b.dominant_direction, -1, 1))))
            for a, b in zip(cpu, gpu)]
     both = maps_cpu.valid & maps_gpu.valid
     agree = float(np.mean(np.abs(maps_cpu.depth[both] - maps_gpu.depth[both]) < 0.01))
-    print(json.dumps({"frames": len(frames), "fusion_on_cuda": fusion, "sh_rel_diff_max": max(rel),
+    print(json.dumps({"frames": len(frames), "history": history, "fusion_on_cuda": fusion, "sh_rel_diff_max": max(rel),
                       "direction_diff_deg_max": max(ang), "raycast_depth_within_1cm": agree,
                       "valid_cpu": int(maps_cpu.valid.sum()), "valid_gpu": int(maps_gpu.valid.sum())}))
 

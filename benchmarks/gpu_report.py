@@ -15,6 +15,14 @@ def main() -> None:
     peers = json.loads((HERE / "results" / "peers_cuda.json").read_text())
     ray, vis = peers["raycast"], peers["visibility"]
     demo = {k: json.loads((HERE / "results" / f"speed_demo_{k}.json").read_text()) for k in ("sun", "nosun")}
+    hist = {(k, t): json.loads((HERE / "results" / f"history_{k}_{t}.json").read_text())
+            for k in ("on", "off") for t in ("s4_r64_b3", "demo_sun")}
+    hist_table = ("| lighting.history | TUM stride 4 / 64 rays / 3 bands: frames/s, median frame (solve ms) | demo with "
+                  "its traced light: frames/s, median frame (solve + sun ms) |\n|---|---|---|\n")
+    for k, label in (("on", "8000 (default)"), ("off", "0 (`--no-history`)")):
+        t, d = hist[k, "s4_r64_b3"], hist[k, "demo_sun"]
+        hist_table += (f"| {label} | {t['frames_per_s_median']:.1f} ({t['ms_median']['solve']:.0f}) | "
+                       f"{d['frames_per_s_median']:.1f} ({d['ms_median']['solve'] + d['ms_median']['sun']:.0f}) |\n")
     r0 = runs[0]
     def threads(f: str) -> int:  # results/blas{N}_...json
         return int(Path(f).name[4:].split("_")[0])
@@ -36,13 +44,19 @@ fusion ran on the GPU (`{r0['fusion_on']}`). Recording: the first 30 frames of T
 Kinect), {r0['voxel_size'] * 100:.0f} cm voxels, {r0['ray_length']} m rays; 3 warm-up frames left out, {r0['frames_timed']} timed.
 
 Reproduce on a GPU machine with warp-lang 1.19.0 and open3d 0.20.0 (CUDA build) installed:
-`bash benchmarks/gpu_run.sh RECORDING benchmarks/results speed && python benchmarks/gpu_report.py`
+`bash benchmarks/gpu_run.sh RECORDING benchmarks/results speed history && python benchmarks/gpu_report.py`
 (benchmarks/gpu_run.sh says how the wheels got there and which stand-ins the image needed).
 
 ## CUDA agrees with the CPU (same frames, same settings)
 `benchmarks/cuda_check.py` on {c['frames']} frames: SH relative difference at most {c['sh_rel_diff_max']:.4f}, dominant
 direction difference at most {c['direction_diff_deg_max']:.2f} deg, Warp ray-cast depth within 1 cm on
 {c['raycast_depth_within_1cm']:.1%} of the pixels valid in both ({c['valid_cpu']} CPU / {c['valid_gpu']} GPU).
+That is TUM with the history of samples (`lighting.history`, the default): on 8 frames 11.6% / 9.7 deg, against
+2.7% / 1.3 deg with `history` 0 (`cuda_check.py RECORDING 8 0`; 0.13% / 0.07 deg on 4 frames before the
+normal bins were counted per albedo region). On the generated tabletop and on the demo (8 frames each) CPU and
+CUDA agree within 0.02% and 0.005 deg with the history and without it. TUM's light is weakly determined,
+and the solve's discrete steps (albedo regions, robust weights, random subsets) flip on last-digit
+differences of the transfer; the history carries such a flip into later frames.
 
 ## Full per-frame pipeline (fuse, ray cast, R_TR, solve, traced light), ms per stage, mean
 | stride | rays | bands | frames/s | frames/s, median frame | {' | '.join(STAGES)} |
@@ -56,18 +70,22 @@ buffer allocated late, a kernel module loaded after the warm-up: one stride-1 fr
 bottleneck: fuse + ray cast + transfer take a few ms at every stride, and the samples are a random subset of
 at most 8000 pixels drawn before the transfer (so stride 1 traces no more rays than stride 4). The host-side
 robust solve (numpy: IRLS over up to 8000 samples alternating F and per-region albedos until F moves less
-than 1%, at most 12 times) takes {min(r['ms_mean']['solve'] for r in runs):.0f}-{max(r['ms_mean']['solve'] for r in runs):.0f} ms (means; 25-39 ms in the other calls) and sets the rate. Figures move by 20-40% between
-machines and calls: stride 4 / 64 rays / 3 bands gave 15.4 and 18.0 frames/s in two calls on 2026-11-24
-(morning), 17.0, 21.6 and 23.5 in three calls after the solve was made 1.5x faster (`benchmarks/solve_speed.py`: same
-results, 1.5-1.75x on the 2-core CPU; the last two are the BLAS rows below) and the table's figure on a fresh machine
-whose Warp and Open3D ray casts also ran 1.3-1.8x slower than in the other calls. The issue's goals
-(60 frames/s at stride 1, 120 at stride 4) are not met; the solve has to move onto the GPU or need fewer
-alternations (a convergent albedo step) first.
-Where a light is held (the demo, {demo['sun']['size']}, stride 4, 64 rays, 5 bands) the second, joint solve costs
-again as much: {demo['sun']['frames_per_s']:.1f} frames/s ('sun' {demo['sun']['ms_mean']['sun']:.0f} ms, 'solve' {demo['sun']['ms_mean']['solve']:.0f} ms) against
-{demo['nosun']['frames_per_s']:.1f} with `--no-sun --no-bounce` in the same call.
+than 1%, at most 12 times) takes {min(r['ms_mean']['solve'] for r in runs):.0f}-{max(r['ms_mean']['solve'] for r in runs):.0f} ms and sets the rate: with the history of samples (the default) it runs twice
+a frame, once on the current view's samples (the traced light is searched from their shadows) and once on
+those and the history's (table below: 1.5x the frame time). Figures move by 20-40% between machines and
+calls: before the history, stride 4 / 64 rays / 3 bands gave 15.4-23.5 frames/s in five calls on
+2026-11-24 (the BLAS rows below among them). The issue's goals (60 frames/s at stride 1, 120 at stride 4)
+are not met; the solve has to move onto the GPU or need fewer alternations first.
+Where a light is held (the demo, {demo['sun']['size']}, stride 4, 64 rays, 5 bands): {demo['sun']['frames_per_s']:.1f} frames/s ('sun'
+{demo['sun']['ms_mean']['sun']:.0f} ms, 'solve' {demo['sun']['ms_mean']['solve']:.0f} ms) against {demo['nosun']['frames_per_s']:.1f} with `--no-sun --no-bounce` in the same call: with the history
+both run two solves a frame (the joint solve with the traced light takes the second's place).
 
-## BLAS threads for the host-side solve (`gpu_run.sh ... blas`, one call, 2026-11-24; median frames)
+## The history of samples (`gpu_run.sh ... history`, one call, 2026-11-24 evening; median frames)
+{hist_table}
+The history makes the lighting more accurate (benchmarks/lighting_accuracy.md: generated tabletop si-RMSE
+0.112 -> 0.096) at this cost; for live use on a GPU `lighting.history = 0` (or `--no-history` here).
+
+## BLAS threads for the host-side solve (`gpu_run.sh ... blas`, one call, 2026-11-24 before the history; median frames)
 {blas_table}
 photoreg leaves numpy's BLAS threaded on hosts with more than 4 cores (photoreg/__init__.py) and uses one
 thread on 4 or fewer, where threads only contend with Warp and the renderer.

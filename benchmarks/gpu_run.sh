@@ -1,13 +1,16 @@
 #!/usr/bin/env bash
 # What ran on the GPU machine (after the wheels of warp-lang 1.19.0, open3d 0.20.0 (CUDA build) and
 # pyrender 0.1.45 with its pure-Python dependencies (trimesh among them: gpu_profile.py needs it) were
-# installed into /tmp/site): CUDA correctness,
+# installed into /tmp/site, and libEGL and its kin unpacked from their Debian packages with `dpkg -x` into a
+# folder on LD_LIBRARY_PATH: open3d's CUDA build loads libEGL.so.1, which the image lacks): CUDA correctness,
 # then the figures of benchmarks/gpu.md, benchmarks/speed.md and benchmarks/renderers.md.
 # usage: bash benchmarks/gpu_run.sh RECORDING OUTDIR STEP...
 #   speed      cuda_check, `photoreg bench speed` at four settings and on the demo (with and without the
 #              traced light), gpu_profile.py, peers.py
 #   renderers  `photoreg bench renderers --device cuda` on RENDER_SCENES (a scene cache made here with
 #              `photoreg bench renderers`, e.g. ~/.cache/photoreg/bench_scenes)
+#   history    TUM stride 4 / 64 rays / 3 bands and the demo with its traced light, with and without the
+#              history of samples (--no-history)
 #   blas       the solve's BLAS threads (OPENBLAS_NUM_THREADS 1, 4, 16) at stride 4 / 64 rays / 3 bands
 #              and on the demo with its traced light
 #   sweep      `photoreg bench sweep --device cuda` on SWEEP_SCENES (recordings with lighting_gt.json
@@ -41,6 +44,15 @@ for step in "$@"; do
       python3 benchmarks/gpu_profile.py "$rec" --device cuda --json "$out/profile_cuda.json"
       # Peers in the same run: Warp ray cast vs Open3D ray_cast, Warp visibility vs Embree.
       python3 benchmarks/peers.py "$rec" --device cuda --json "$out/peers_cuda.json" ;;
+    history)
+      # The history of samples (lighting.history): TUM and the demo with and without it, in one call.
+      for h in "" "--no-history"; do
+        tag=$([ -z "$h" ] && echo on || echo off)
+        python3 -m photoreg bench speed "$rec" --device cuda --frames 0:30 --warmup 3 --stride 4 --rays 64 \
+          --bands 3 $h --json "$out/history_${tag}_s4_r64_b3.json" 2>/dev/null
+        python3 -m photoreg bench speed data/demo --device cuda --frames 0:30 --warmup 3 --stride 4 --rays 64 \
+          --bands 5 $h --json "$out/history_${tag}_demo_sun.json" 2>/dev/null
+      done ;;
     blas)
       for n in 1 4 16; do
         OPENBLAS_NUM_THREADS=$n python3 -m photoreg bench speed "$rec" --device cuda --frames 0:30 --warmup 3 \
