@@ -54,9 +54,11 @@ direction difference at most {c['direction_diff_deg_max']:.2f} deg, Warp ray-cas
 That is TUM with the history of samples (`lighting.history`, the default): on 8 frames 11.6% / 9.7 deg, against
 2.7% / 1.3 deg with `history` 0 (`cuda_check.py RECORDING 8 0`; 0.13% / 0.07 deg on 4 frames before the
 normal bins were counted per albedo region). On the generated tabletop and on the demo (8 frames each) CPU and
-CUDA agree within 0.02% and 0.005 deg with the history and without it. TUM's light is weakly determined,
-and the solve's discrete steps (albedo regions, robust weights, random subsets) flip on last-digit
-differences of the transfer; the history carries such a flip into later frames.
+CUDA agree within 0.02% and 0.005 deg with the history and without it. The drift is sampling, not CUDA: with
+the history the solve takes a random 8000 of the current and the kept samples (on TUM without it every
+sample is used), TUM's light is weakly determined, and two seeds of that subset on the CPU alone move TUM's
+estimate as much (8 frames: SH 16%, direction 11.6 deg); on the generated tabletop three seeds give si-RMSE
+0.093-0.096 (0.112 without the history).
 
 ## Full per-frame pipeline (fuse, ray cast, R_TR, solve, traced light), ms per stage, mean
 | stride | rays | bands | frames/s | frames/s, median frame | {' | '.join(STAGES)} |
