@@ -117,11 +117,12 @@ class Pipeline:
         """The solve's extra terms other than the traced light: the bounce (lighting.bounce)."""
         return [bounce_term(data.transfer, data.radiance)] if self.bounce else []
 
-    def _solve(self, data: Samples, previous, grid=None, sun: Sun | None = None, start=None):
-        """The robust solve of `data` with the bounce term, and with the traced light `sun` (its disc traced
-        through `grid` from every sample) when given; `start`: the solve of the same samples without it."""
+    def _solve(self, data: Samples, previous, terms: list[Term], grid=None, sun: Sun | None = None, start=None):
+        """The robust solve of `data` with `terms` (self._terms(data)), and with the traced light `sun` (its
+        disc traced through `grid` from every sample) when given; `start`: the solve of the same samples
+        without it."""
         lc = self.session.lighting
-        terms = self._terms(data)
+        terms = list(terms)
         cfg = self.solver_cfg
         if sun is not None:
             disc = disc_rays(sun, self.sun.cfg.rays).astype(np.float32)
@@ -133,11 +134,11 @@ class Pipeline:
         return solve(data.radiance, data.transfer, data.normals, data.visible, cfg, points=data.points,
                      reference=previous, terms=terms, start=start)
 
-    def _find_sun(self, grid, current: Samples, sol) -> Sun | None:
-        """The dominant light (photoreg.lighting.sun) from the current view's samples and their solve `sol`."""
+    def _find_sun(self, grid, current: Samples, sol, terms: list[Term]) -> Sun | None:
+        """The dominant light (photoreg.lighting.sun) from the current view's samples and their solve `sol`
+        (with `terms`)."""
         lc, rc = self.session.lighting, self.session.reconstruction
         offset = lc.ray_offset_voxels * rc.voxel_size
-        terms = self._terms(current)
 
         def trace(idx, dirs):
             return visibility(grid, current.points[idx], current.normals[idx], dirs.astype(np.float32), offset,
@@ -155,21 +156,23 @@ class Pipeline:
         searched from the current view's samples and their own solve (its shadows; the history's samples
         would dilute them)."""
         with self._timed(t, "solve"):
-            own = self._solve(current, previous)
+            own_terms = self._terms(current)
+            own = self._solve(current, previous, own_terms)
+            terms = own_terms if data is current else self._terms(data)
         sun = None
         if self.sun is not None:
             with self._timed(t, "sun"):
-                sun = self._find_sun(grid, current, own)
+                sun = self._find_sun(grid, current, own, own_terms)
         if sun is not None:
             with self._timed(t, "sun"):
-                joint = self._solve(data, previous, grid, sun, start=own if data is current else None)
+                joint = self._solve(data, previous, terms, grid, sun, start=own if data is current else None)
             if joint.terms["sun"] @ sh.LUMINANCE > 0:
                 return sun, joint, own
             sun = None
         if data is current:
             return sun, own, own
         with self._timed(t, "solve"):
-            return sun, self._solve(data, previous), own
+            return sun, self._solve(data, previous, terms), own
 
     def process(self, frame: Frame) -> FrameResult:
         """Run every stage on one frame; a weak or empty frame still yields a finite estimate."""
