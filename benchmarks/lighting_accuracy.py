@@ -49,7 +49,7 @@ ABLATIONS = {  # one change each against the defaults, on the recordings with gr
     "albedo_reference mean": {"albedo_reference": "mean"}, "albedo_reference largest": {"albedo_reference": "largest"},
     "no sample checks": {"max_normal_angle": 180.0, "max_depth_gap_voxels": float("inf")},
     "bin_min_fraction 0": {"bin_min_fraction": 0.0}, "no region weights": {"region_weights": False},
-    "no temporal filter": {"temporal": False},  # and so no history (its change test empties the history)
+    "no temporal filter": {"temporal": False},
     "no history": {"history": 0},
     "no exposure gain": {"exposure": False}, "no traced sun": {"sun": False}, "no bounce": {"bounce": False},
     "albedo_step joint": {"albedo_step": "joint"}, "sun_regularization 0.05": {"sun_regularization": 0.05},
