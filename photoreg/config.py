@@ -73,6 +73,10 @@ class LightingConfig:
     # Samples of earlier frames solved with the current ones (photoreg.lighting.history): a random subset of at
     # most this many in which older views fade, 0 = the current view only.
     history: int = 8000
+    # A frame whose camera is within this many degrees of the newest kept view replaces that view's samples
+    # instead of joining as a new view (photoreg.lighting.history), so dense recordings keep distinct views;
+    # 0 = every frame is a new view.
+    history_view_deg: float = 10.0
     exposure: bool = True         # per-frame gain against the fused radiance (auto-exposure)
     bounce: bool = True           # one bounce in the model: directions blocked by real geometry see radiance e
     sun: bool = True              # trace the dominant light apart from the SH (photoreg.lighting.sun; fixed bands)
@@ -251,6 +255,7 @@ def validate(s: Session) -> None:
               (0 < L.max_normal_angle <= 180, "lighting.max_normal_angle must be in (0, 180]"),
               (L.max_depth_gap_voxels > 0, "lighting.max_depth_gap_voxels must be > 0"),
               (L.history >= 0, "lighting.history must be >= 0"),
+              (L.history_view_deg >= 0, "lighting.history_view_deg must be >= 0"),
               (L.process_noise >= 0 and L.change_threshold > 0,
                "lighting.process_noise must be >= 0 and lighting.change_threshold > 0"),
               (s.render.light_rays >= 0, "render.light_rays must be >= 0"),

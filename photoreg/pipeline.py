@@ -52,7 +52,8 @@ class Pipeline:
         self.filter = (LightingFilter(self.solver_cfg.fit_bands, FilterConfig(lc.process_noise, lc.change_threshold))
                        if lc.temporal else None)
         self.exposure = ExposureTracker(cell=2 * rc.voxel_size) if lc.exposure else None
-        self.history = SampleHistory(lc.history, seed=self.solver_cfg.seed) if lc.history else None  # earlier views
+        self.history = (SampleHistory(lc.history, seed=self.solver_cfg.seed, view_deg=lc.history_view_deg)
+                        if lc.history else None)  # earlier views
         self.tracker = None
         if not session.recording.use_poses:
             from .recon.tracking import Tracker
@@ -228,7 +229,7 @@ class Pipeline:
                     F = Lighting(filtered)
                 if self.history is not None:  # keep the samples the view's own solve fitted, if it had enough
                     if own.diagnostics.n_samples >= self.solver_cfg.min_samples_factor * self.solver_cfg.fit_bands ** 2:
-                        self.history.add(current.take(own.samples[own.weights > 0]))
+                        self.history.add(current.take(own.samples[own.weights > 0]), pose)
                     elif data is not current:  # a black, saturated or hole-ridden view
                         diag.weak = True
                         diag.notes.append("too few usable samples in this view: the lighting rests on earlier "

@@ -9,7 +9,8 @@ from photoreg.bench.score import load_gt
 from photoreg.cli import main
 from photoreg.config import Session
 from photoreg.io.recording import iter_frames, open_recording
-from photoreg.lighting.history import Samples, SampleHistory
+from photoreg.config import load_session
+from photoreg.lighting.history import Samples, SampleHistory, view_change_deg
 from photoreg.pipeline import Pipeline
 
 
@@ -28,6 +29,58 @@ def test_older_views_fade():
     assert len(hist) == 2000
     share = np.bincount(hist.kept.radiance[:, 0].astype(int), minlength=6) / 2000
     np.testing.assert_allclose(share[1:], [1 / 32, 1 / 16, 1 / 8, 1 / 4, 1 / 2], atol=0.02)
+
+
+def pose_at(yaw_deg: float, radius: float = 1.5, shift=(0.0, 0.0, 0.0)) -> np.ndarray:
+    """Camera-to-world pose (OpenCV axes: z forward) on a circle about the origin, looking at it; `shift` moves
+    it without turning it."""
+    a = np.radians(yaw_deg)
+    c = radius * np.array([np.cos(a), np.sin(a), 0.0])
+    z = -c / radius
+    x = np.cross(z, [0.0, 0.0, 1.0])
+    pose = np.eye(4)
+    pose[:3, :3] = np.stack([x, np.cross(z, x), z], axis=1)
+    pose[:3, 3] = c + np.asarray(shift)
+    return pose
+
+
+def test_view_change_counts_turns_and_shifts():
+    assert view_change_deg(pose_at(0), pose_at(30), 1.5) == pytest.approx(30.0)
+    assert view_change_deg(pose_at(0), pose_at(0, shift=(0, 1.5, 0)), 1.5) == pytest.approx(45.0)
+    assert view_change_deg(pose_at(0), pose_at(0, shift=(0, 0.05, 0)), 1.5) < 2.0
+
+
+def test_a_static_camera_refreshes_its_view():
+    """Frames from one pose are one view: each takes the previous one's place (a light switched in front of a
+    static camera leaves no old samples behind); with view_deg 0 every frame is a view and the old ones stay."""
+    for view_deg, frames in ((10.0, {5}), (0.0, set(range(6)))):
+        hist = SampleHistory(2000, seed=1, view_deg=view_deg)
+        for f in range(6):
+            hist.add(frame_samples(f, 2000), pose_at(0.0))
+        assert len(hist) == 2000
+        assert set(np.unique(hist.kept.radiance[:, 0]).astype(int)) == frames
+
+
+def test_history_keeps_views_not_frames():
+    """A camera turning 4 degrees a frame about the scene, views 10 degrees apart: frames 1-2 replace frame 0
+    (within 10 degrees of its pose), frame 3 starts a view, 4-5 replace it, and so on; the kept samples are
+    those of the last frame of each view, the older views' fading as before."""
+    hist = SampleHistory(2000, seed=1, view_deg=10.0)
+    for f in range(9):
+        hist.add(frame_samples(f, 2000), pose_at(4.0 * f))
+    share = np.bincount(hist.kept.radiance[:, 0].astype(int), minlength=9) / 2000
+    assert set(np.flatnonzero(share)) == {2, 5, 8}
+    np.testing.assert_allclose(share[[2, 5, 8]], [1 / 4, 1 / 4, 1 / 2], atol=0.03)
+    with pytest.raises(ValueError, match="view_deg"):
+        SampleHistory(10, view_deg=-1.0)
+
+
+def test_history_view_deg_is_checked(tmp_path):
+    (tmp_path / "x").mkdir()
+    path = tmp_path / "s.toml"
+    path.write_text('[recording]\npath = "x"\n[lighting]\nhistory_view_deg = -5\n')
+    with pytest.raises(ValueError, match="history_view_deg"):
+        load_session(path)
 
 
 def test_history_puts_the_current_view_first():
