@@ -23,7 +23,7 @@ from .lighting.exposure import ExposureTracker
 from .lighting.history import Samples, SampleHistory
 from .lighting.robust import Term, bounce_term, solve
 from .lighting.samples import agreement
-from .lighting.solver import SolverConfig
+from .lighting.solver import SolverConfig, select_samples
 from .lighting.sun import Sun, SunConfig, SunSearch, disc_rays, sun_term
 from .lighting.temporal import FilterConfig, LightingFilter
 from .preprocess import Prepared, prepare
@@ -137,7 +137,7 @@ class Pipeline:
 
     def _find_sun(self, grid, current: Samples, sol, terms: list[Term]) -> Sun | None:
         """The dominant light (photoreg.lighting.sun) from the current view's samples and their solve `sol`
-        (with `terms`)."""
+        (with `terms`; None when no search is due)."""
         lc, rc = self.session.lighting, self.session.reconstruction
         offset = lc.ray_offset_voxels * rc.voxel_size
 
@@ -152,13 +152,15 @@ class Pipeline:
         return self.sun(trace, sol, current.radiance, design, current.normals)
 
     def _lighting(self, grid, current: Samples, data: Samples, previous, t: dict[str, float]):
-        """(sun, solution, the current view's own solve): the lighting of the samples `data` (the current
-        view's, or those and the history's), jointly with the traced light when one is held. The light is
-        searched from the current view's samples and their own solve (its shadows; the history's samples
-        would dilute them)."""
+        """(sun, solution, the current view's own solve or None): the lighting of the samples `data` (the
+        current view's, or those and the history's), jointly with the traced light when one is held. The light
+        is searched from the current view's samples and their own solve (its shadows; the history's samples
+        would dilute them); with a history that own solve runs only on frames the search is due (a coarse
+        pass, or a held light refined)."""
         with self._timed(t, "solve"):
             own_terms = self._terms(current)
-            own = self._solve(current, previous, own_terms)
+            searched = self.sun is not None and self.sun.due()
+            own = self._solve(current, previous, own_terms) if data is current or searched else None
             terms = own_terms if data is current else self._terms(data)
         sun = None
         if self.sun is not None:
@@ -227,9 +229,13 @@ class Pipeline:
                 if self.filter is not None:
                     filtered, diag.change_detected = self.filter.update(sol)
                     F = Lighting(filtered)
-                if self.history is not None:  # keep the samples the view's own solve fitted, if it had enough
-                    if own.diagnostics.n_samples >= self.solver_cfg.min_samples_factor * self.solver_cfg.fit_bands ** 2:
-                        self.history.add(current.take(own.samples[own.weights > 0]), pose)
+                if self.history is not None:  # keep the samples its own solve fitted (or could use), if enough
+                    cfg = self.solver_cfg
+                    rows = (own.samples[own.weights > 0] if own is not None else
+                            select_samples(current.radiance, current.transfer, current.normals, current.visible,
+                                           cfg, cfg.fit_bands)[3])
+                    if rows.size >= cfg.min_samples_factor * cfg.fit_bands ** 2:
+                        self.history.add(current.take(rows), pose)
                     elif data is not current:  # a black, saturated or hole-ridden view
                         diag.weak = True
                         diag.notes.append("too few usable samples in this view: the lighting rests on earlier "

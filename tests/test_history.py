@@ -11,7 +11,10 @@ from photoreg.config import Session
 from photoreg.io.recording import iter_frames, open_recording
 from photoreg.config import load_session
 from photoreg.lighting.history import Samples, SampleHistory, view_change_deg
+import photoreg.pipeline as pipeline_module
 from photoreg.pipeline import Pipeline
+from photoreg.types import Intrinsics
+from scenes import write_recording
 
 
 def frame_samples(frame: int, n: int, k: int = 9) -> Samples:
@@ -121,3 +124,25 @@ def test_a_lighting_change_fades_out_of_the_history(tmp_path):
     assert not any(changed[:6]) and any(changed[6:8]), changed
     assert max(err[10:]) < 20, [round(e, 1) for e in err]
     assert 0 < len(pipe.history) <= 8000
+
+
+def test_the_views_own_solve_runs_only_for_the_light_search(tmp_path, monkeypatch):
+    """With a history the solve takes the current and the kept samples; the current view's samples are solved
+    on their own as well only where the light search needs them (no traced light here: one solve a frame)."""
+    k = Intrinsics(64, 48, 56.0, 56.0, 31.5, 23.5, 5000.0)
+    rec = open_recording(write_recording(tmp_path / "rec", k, 4, with_gt=False))
+    calls = []
+
+    def counted(*args, **kwargs):
+        calls.append(len(args[0]))
+        return solve(*args, **kwargs)
+
+    solve = pipeline_module.solve
+    monkeypatch.setattr(pipeline_module, "solve", counted)
+    s = Session(device="cpu")
+    s.lighting.rays, s.lighting.stride, s.lighting.sun = 16, 2, False
+    pipe = Pipeline(s, rec.intrinsics)
+    for frame in iter_frames(rec, range(4)):
+        pipe.process(frame)
+        assert len(calls) == frame.index + 1, calls   # one solve: the view alone, then the view and the history
+    assert len(pipe.history) > 0

@@ -120,19 +120,25 @@ class SunSearch:
         self.held: np.ndarray | None = None    # the accumulated best coarse direction while a light is held
         self.frames = 0
 
-    def __call__(self, trace: Callable[[np.ndarray, np.ndarray], np.ndarray], sol: Solution, radiance: np.ndarray,
-                 design: Callable[[np.ndarray], np.ndarray], normals: np.ndarray) -> Sun | None:
+    def due(self) -> bool:
+        """Whether the next frame is searched (a coarse pass, or a held light refined); if not, the call may
+        pass no solution (the pipeline then skips the current view's own solve)."""
+        return self.frames % self.cfg.coarse_every == 0 or self.held is not None
+
+    def __call__(self, trace: Callable[[np.ndarray, np.ndarray], np.ndarray], sol: Solution | None,
+                 radiance: np.ndarray, design: Callable[[np.ndarray], np.ndarray], normals: np.ndarray) -> Sun | None:
         """The frame's dominant light from the solution `sol` without it (on radiance (N, 3) and normals
         (N, 3)), or None when none is held. design(idx) gives the rows (len(idx), K') of its design (the SH
         transfer and any other extra terms' columns); trace(idx, dirs) the visibility (len(idx), D) bool of
         directions dirs (D, 3) from the samples idx."""
         cfg = self.cfg
-        if sol.samples is None or sol.system is None or int((sol.weights > 0).sum()) < 10:
+        if not self.due():   # a frame between coarse passes with no light held: nothing to search
+            self.frames += 1
+            return None
+        if sol is None or sol.samples is None or sol.system is None or int((sol.weights > 0).sum()) < 10:
             return None
         coarse = self.frames % cfg.coarse_every == 0
         self.frames += 1
-        if not coarse and self.held is None:
-            return None
         A, I, w, rho, nrm, idx = _search_inputs(sol, radiance, design, normals, cfg)
         lam = cfg.search_regularization
 
