@@ -72,25 +72,32 @@ buffer allocated late, a kernel module loaded after the warm-up: one stride-1 fr
 bottleneck: fuse + ray cast + transfer take a few ms at every stride, and the samples are a random subset of
 at most 8000 pixels drawn before the transfer (so stride 1 traces no more rays than stride 4). The host-side
 robust solve (numpy: IRLS over up to 8000 samples alternating F and per-region albedos until F moves less
-than 1%, at most 12 times) takes {min(r['ms_mean']['solve'] for r in runs):.0f}-{max(r['ms_mean']['solve'] for r in runs):.0f} ms and sets the rate: with the history of samples (the default) it runs twice
-a frame, once on the current view's samples (the traced light is searched from their shadows) and once on
-those and the history's (table below: 1.5x the frame time). Figures move by 20-40% between machines and
-calls: before the history, stride 4 / 64 rays / 3 bands gave 15.4-23.5 frames/s in five calls on
-2026-11-24 (the BLAS rows below among them). The issue's goals (60 frames/s at stride 1, 120 at stride 4)
-are not met; the solve has to move onto the GPU or need fewer alternations first.
+than 1%, at most 12 times) takes {min(r['ms_mean']['solve'] for r in runs):.0f}-{max(r['ms_mean']['solve'] for r in runs):.0f} ms and sets the rate. With the history of samples (the default) it runs once
+a frame on the current view's and the kept samples, and a second time on the current view's alone where the
+light search needs their shadows (a coarse pass every 5th frame while no light is held, as on TUM; every
+frame while one is held). These rows were measured late on 2026-11-24 after the solve was made faster (same
+results: 1.2-1.3x per call on the CPU) and the second solve was limited to those frames: stride 4 / 64 rays /
+3 bands gave 16.3-22.8 frames/s in five runs over three calls (this table, the history and the BLAS rows
+below), against 10.0-10.3 earlier that day with the history. Figures move by 20-40% between calls. The
+issue's goals (60 frames/s at stride 1, 120 at stride 4) are not met: the host-side solve, sample gathering
+and preprocessing take 35-50 ms a frame together; the solve has to move onto the GPU first.
 Where a light is held (the demo, {demo['sun']['size']}, stride 4, 64 rays, 5 bands): {demo['sun']['frames_per_s']:.1f} frames/s ('sun'
-{demo['sun']['ms_mean']['sun']:.0f} ms, 'solve' {demo['sun']['ms_mean']['solve']:.0f} ms) against {demo['nosun']['frames_per_s']:.1f} with `--no-sun --no-bounce` in the same call: with the history
-both run two solves a frame (the joint solve with the traced light takes the second's place).
+{demo['sun']['ms_mean']['sun']:.0f} ms, 'solve' {demo['sun']['ms_mean']['solve']:.0f} ms) against {demo['nosun']['frames_per_s']:.1f} with `--no-sun --no-bounce` in the same call
+(one solve a frame then: no light search).
 
-## The history of samples (`gpu_run.sh ... history`, one call, 2026-11-24 evening; median frames)
+## The history of samples (`gpu_run.sh ... history`, one call, 2026-11-24 late; median frames)
 {hist_table}
 The history makes the lighting more accurate (benchmarks/lighting_accuracy.md: generated tabletop si-RMSE
-0.112 -> 0.096) at this cost; for live use on a GPU `lighting.history = 0` (or `--no-history` here).
+0.112 -> 0.096) at this cost where no light is held (TUM); where one is held (the demo) the current view's
+own solve runs anyway for the light search and the history costs nothing more. For the fastest live use on
+a GPU: `lighting.history = 0` (or `--no-history` here).
 
-## BLAS threads for the host-side solve (`gpu_run.sh ... blas`, one call, 2026-11-24 before the history; median frames)
+## BLAS threads for the host-side solve (`gpu_run.sh ... blas`, one call, 2026-11-24 late; median frames)
 {blas_table}
 photoreg leaves numpy's BLAS threaded on hosts with more than 4 cores (photoreg/__init__.py) and uses one
-thread on 4 or fewer, where threads only contend with Warp and the renderer.
+thread on 4 or fewer, where threads only contend with Warp and the renderer. The rows differ by less than
+calls do (an earlier call before the history ranked 4 threads first, this one 1 thread): the solve's systems
+are small (K <= 28 unknowns) and the BLAS share of its time is small.
 
 ## Inside the fuse and ray-cast stages (`benchmarks/gpu_profile.py`, synchronised medians of 10; 2026-11-24 run)
 | integrate | integrate + dense brick export | ray cast stride 1 (with host copies) | its host copies | ray cast stride 4 | its host copies |
