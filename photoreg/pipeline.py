@@ -23,7 +23,7 @@ from .lighting.exposure import ExposureTracker
 from .lighting.history import Samples, SampleHistory
 from .lighting.robust import Term, bounce_term, solve
 from .lighting.samples import agreement
-from .lighting.solver import SolverConfig, select_samples
+from .lighting.solver import SolverConfig
 from .lighting.sun import Sun, SunConfig, SunSearch, disc_rays, sun_term
 from .lighting.temporal import FilterConfig, LightingFilter
 from .preprocess import Prepared, prepare
@@ -229,11 +229,13 @@ class Pipeline:
                 if self.filter is not None:
                     filtered, diag.change_detected = self.filter.update(sol)
                     F = Lighting(filtered)
-                if self.history is not None:  # keep the samples its own solve fitted (or could use), if enough
+                if self.history is not None:  # keep the view's samples its own solve fitted, if enough
+                    # without an own solve: those the joint solve fitted (the current view's rows come first;
+                    # adding every usable sample instead cost TUM's held-out residual 0.226 -> 0.238)
+                    fit = own if own is not None else sol
+                    rows = (np.zeros(0, dtype=np.int64) if fit.samples is None else
+                            fit.samples[(fit.samples < len(current)) & (fit.weights > 0)])
                     cfg = self.solver_cfg
-                    rows = (own.samples[own.weights > 0] if own is not None else
-                            select_samples(current.radiance, current.transfer, current.normals, current.visible,
-                                           cfg, cfg.fit_bands)[3])
                     if rows.size >= cfg.min_samples_factor * cfg.fit_bands ** 2:
                         self.history.add(current.take(rows), pose)
                     elif data is not current:  # a black, saturated or hole-ridden view
