@@ -182,7 +182,7 @@ def test_demo_lighting_against_the_path_tracer(demo_run):
 
 
 @pytest.mark.xfail(reason="issue 5 open: the baseline pastes the path tracer's own object; frame 10 beats it "
-                          "(0.044 vs 0.078) but frame 20 does not (0.045 vs 0.020)", strict=False)
+                          "(0.043 vs 0.078) but frame 20 does not (0.045 vs 0.020)", strict=False)
 def test_demo_composite_beats_no_shadow_baseline(demo_run):
     from photoreg.bench.score import score_composites
 
