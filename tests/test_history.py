@@ -7,9 +7,8 @@ import pytest
 from photoreg.bench import metrics
 from photoreg.bench.score import load_gt
 from photoreg.cli import main
-from photoreg.config import Session
+from photoreg.config import Session, load_session
 from photoreg.io.recording import iter_frames, open_recording
-from photoreg.config import load_session
 from photoreg.lighting.history import Samples, SampleHistory, view_change_deg
 import photoreg.pipeline as pipeline_module
 from photoreg.pipeline import Pipeline
@@ -131,13 +130,12 @@ def test_the_views_own_solve_runs_only_for_the_light_search(tmp_path, monkeypatc
     on their own as well only where the light search needs them (no traced light here: one solve a frame)."""
     k = Intrinsics(64, 48, 56.0, 56.0, 31.5, 23.5, 5000.0)
     rec = open_recording(write_recording(tmp_path / "rec", k, 4, with_gt=False))
-    calls = []
+    calls, solve = [], pipeline_module.solve
 
     def counted(*args, **kwargs):
         calls.append(len(args[0]))
         return solve(*args, **kwargs)
 
-    solve = pipeline_module.solve
     monkeypatch.setattr(pipeline_module, "solve", counted)
     s = Session(device="cpu")
     s.lighting.rays, s.lighting.stride, s.lighting.sun = 16, 2, False
