@@ -230,8 +230,8 @@ class Pipeline:
                     filtered, diag.change_detected = self.filter.update(sol)
                     F = Lighting(filtered)
                 if self.history is not None:  # keep the view's samples its own solve fitted, if enough
-                    # without an own solve: those the joint solve fitted (the current view's rows come first;
-                    # adding every usable sample instead cost TUM's held-out residual 0.226 -> 0.238)
+                    # without an own solve: those the solve of the current and kept samples fitted (the current
+                    # view's rows come first; every usable sample instead cost TUM's held-out residual 0.226 -> 0.238)
                     fit = own if own is not None else sol
                     rows = (np.zeros(0, dtype=np.int64) if fit.samples is None else
                             fit.samples[(fit.samples < len(current)) & (fit.weights > 0)])

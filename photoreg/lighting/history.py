@@ -103,9 +103,9 @@ class SampleHistory:
             return
         view = 0 if self.newest is None else self.newest[0] + 1
         self.newest = (view, None if pose is None else np.asarray(pose, dtype=np.float64))
-        merged = current if self.kept is None else self.kept.concat(current)
-        views = np.full(len(current), view) if self.kept is None else np.concatenate([self.views,
-                                                                                      np.full(len(current), view)])
+        merged, views = current, np.full(len(current), view)
+        if self.kept is not None:
+            merged, views = self.kept.concat(current), np.concatenate([self.views, views])
         if len(merged) > self.capacity:
             rows = np.sort(self.rng.choice(len(merged), self.capacity, replace=False))
             merged, views = merged.take(rows), views[rows]
