@@ -70,6 +70,10 @@ class LightingConfig:
     temporal: bool = True         # Kalman filter of the SH across frames (photoreg.lighting.temporal)
     process_noise: float = 0.02   # filter random-walk step, share of a frame's measurement variance
     change_threshold: float = 1.0  # restart the filter when the prediction fits (1 + this) x worse than usual
+    # Share of the filter's precision kept when a frame reaches a new view of the history (photoreg.lighting.
+    # temporal): the solve already holds the earlier views' samples. Generated 12-frame tabletop: direction
+    # 12.6 -> 9.5 degrees, si-RMSE 0.096 -> 0.086 at 0.3 (0.1: 8.8 / 0.087, ICL-NUIM flicker +18% instead of +8%).
+    new_view_share: float = 0.3
     # Samples of earlier frames solved with the current ones (photoreg.lighting.history): a random subset of at
     # most this many in which older views fade, 0 = the current view only.
     history: int = 8000
@@ -258,6 +262,7 @@ def validate(s: Session) -> None:
               (L.history_view_deg >= 0, "lighting.history_view_deg must be >= 0"),
               (L.process_noise >= 0 and L.change_threshold > 0,
                "lighting.process_noise must be >= 0 and lighting.change_threshold > 0"),
+              (0 < L.new_view_share <= 1, "lighting.new_view_share must be in (0, 1]"),
               (s.render.light_rays >= 0, "render.light_rays must be >= 0"),
               (R.voxel_size > 0, "reconstruction.voxel_size must be > 0"),
               (0 < R.depth_min < R.depth_max, "reconstruction.depth_min must be > 0 and < depth_max")]

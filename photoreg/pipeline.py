@@ -49,7 +49,8 @@ class Pipeline:
                          block_count=rc.block_count), self.device)
         self.solver_cfg = SolverConfig.from_lighting(lc)
         self.dirs, self.Y = make_direction_set(lc.rays, self.solver_cfg.fit_bands, seed=0)
-        self.filter = (LightingFilter(self.solver_cfg.fit_bands, FilterConfig(lc.process_noise, lc.change_threshold))
+        self.filter = (LightingFilter(self.solver_cfg.fit_bands,
+                                      FilterConfig(lc.process_noise, lc.change_threshold, lc.new_view_share))
                        if lc.temporal else None)
         self.exposure = ExposureTracker(cell=2 * rc.voxel_size) if lc.exposure else None
         self.history = (SampleHistory(lc.history, seed=self.solver_cfg.seed, view_deg=lc.history_view_deg)
@@ -227,7 +228,8 @@ class Pipeline:
                     diag.bounce_radiance = np.round(sol.terms["bounce"], 7).tolist()
                 diag.exposure_gain = gain
                 if self.filter is not None:
-                    filtered, diag.change_detected = self.filter.update(sol)
+                    new_view = self.history is not None and self.history.is_new_view(current, pose)
+                    filtered, diag.change_detected = self.filter.update(sol, new_view)
                     F = Lighting(filtered)
                 if self.history is not None:  # keep the view's samples its own solve fitted, if enough
                     # without an own solve: those the solve of the current and kept samples fitted (the current

@@ -144,3 +144,23 @@ def test_the_views_own_solve_runs_only_for_the_light_search(tmp_path, monkeypatc
         pipe.process(frame)
         assert len(calls) == frame.index + 1, calls   # one solve: the view alone, then the view and the history
     assert len(pipe.history) > 0
+
+
+def test_the_filter_is_told_when_a_frame_reaches_a_new_view(tmp_path, monkeypatch):
+    """The pipeline passes the history's verdict to the filter: the first frame and a frame 11 degrees on are
+    new views, the same pose again is not (photoreg.lighting.temporal: the prior's precision is discounted)."""
+    k = Intrinsics(64, 48, 56.0, 56.0, 31.5, 23.5, 5000.0)
+    rec = open_recording(write_recording(tmp_path / "rec", k, 4, with_gt=False))   # 11.5 degrees a frame
+    flags, update = [], pipeline_module.LightingFilter.update
+
+    def spied(self, sol, new_view=False):
+        flags.append(new_view)
+        return update(self, sol, new_view)
+
+    monkeypatch.setattr(pipeline_module.LightingFilter, "update", spied)
+    s = Session(device="cpu")
+    s.lighting.rays, s.lighting.stride, s.lighting.sun = 16, 2, False
+    pipe = Pipeline(s, rec.intrinsics)
+    for frame in iter_frames(rec, [0, 0, 1]):
+        pipe.process(frame)
+    assert flags == [True, False, True]

@@ -22,7 +22,7 @@ from photoreg.lighting.robust import loss_weights, solve
 from photoreg.lighting.samples import agreement, depth_normals
 from photoreg.lighting.solver import SolverConfig, solve_lighting
 from photoreg.lighting.temporal import FilterConfig, LightingFilter
-from photoreg.types import Intrinsics
+from photoreg.types import Intrinsics, Lighting
 from test_solver import QUAD, occluded_transfer, sun_sky, unit
 
 ROBUST = dict(loss="huber", albedo="regions", bin_min_fraction=0.01, bands=3, saturation_level=None)
@@ -518,6 +518,27 @@ def test_property_filter_of_a_repeated_measurement_is_that_measurement(seed, rep
         np.testing.assert_allclose(out, sol.lighting.sh, rtol=1e-6, atol=1e-9)
 
 
+def test_filter_discounts_its_prior_at_a_new_view():
+    """Seen from a new view the prior counts new_view_share of its precision (the history's solve already holds
+    the earlier views): with no process noise, three fusions of z_a (precision 3 J) and then z_b with the same
+    precision J give (3 s z_a + z_b) / (3 s + 1); without a new view (3 z_a + z_b) / 4."""
+    rng = np.random.default_rng(11)
+    rad, tr, nrm, vis, _, _ = scene(rng, n=600, albedos=((0.5, 0.5, 0.5),))
+    a = solve(rad, tr, nrm, vis, SolverConfig(**dict(ROBUST, albedo="single")))
+    z_a = a.lighting.sh
+    z_b = z_a * rng.uniform(0.8, 1.2, z_a.shape)
+    b = dataclasses.replace(a, lighting=Lighting(z_b))   # the same samples and precision, another light
+    for new_view, share in ((True, 0.3), (False, 1.0)):
+        filt = LightingFilter(3, FilterConfig(process_noise=0.0, new_view_share=0.3))
+        for _ in range(3):
+            filt.update(a)
+        out, change = filt.update(b, new_view=new_view)
+        assert not change
+        np.testing.assert_allclose(out, (3 * share * z_a + z_b) / (3 * share + 1), rtol=1e-6, atol=1e-9)
+    with pytest.raises(ValueError, match="new_view_share"):
+        FilterConfig(new_view_share=0.0)
+
+
 # --- frame-level hard cases through the pipeline -------------------------------------------------------
 
 def _pipeline(k: Intrinsics, **lighting):
@@ -572,10 +593,11 @@ def test_pipeline_hard_frames_are_finite_weak_and_named():
     assert any("black" in n for n in results[4].diagnostics.notes)
     assert any("saturated" in n for n in results[5].diagnostics.notes)
     # good frames (a box on a floor: 4 normals, so rank-deficient at 5 bands): the light is found (a lost light
-    # is 60-100 degrees off). Frame 9: 35.2 degrees with the history's views 10 degrees apart (this orbit turns
-    # 3.4 degrees a frame: one view), 34.4 with every frame a view (history_view_deg 0).
+    # is 60-100 degrees off; every frame here is 33-38 degrees off). Frame 9: 36.4 degrees (this orbit turns
+    # 3.4 degrees a frame, so frames 3, 6 and 9 start views, where the filter's prior is discounted), 35.2 with
+    # new_view_share 1, 34.4 with every frame a view (history_view_deg 0).
     for i in (3, 9):
-        assert metrics.direction_error_deg(results[i].lighting.sh, ground_truth_sh()) < 36, i
+        assert metrics.direction_error_deg(results[i].lighting.sh, ground_truth_sh()) < 40, i
 
 
 def test_pipeline_samples_are_capped_random_and_checked():

@@ -111,6 +111,10 @@ class SampleHistory:
             merged, views = merged.take(rows), views[rows]
         self.kept, self.views = merged, views
 
+    def is_new_view(self, current: Samples, pose: np.ndarray | None) -> bool:
+        """Whether `current`, seen from `pose`, would join as a new view (add() keeps it apart)."""
+        return self._newest_rows(current, pose) is None
+
     def _newest_rows(self, current: Samples, pose: np.ndarray | None) -> np.ndarray | None:
         """Mask of the kept rows of the newest view when `current`, seen from `pose`, is near it and some of them
         are left; else None (a new view)."""
