@@ -29,7 +29,7 @@ from . import metrics
 from .scenes import SCENE_CACHE, cached_scene
 
 DEFAULT_SCENES = ("tabletop", "corner")
-STAGES = ("preprocess", "pose", "fuse", "raycast", "sample", "transfer", "solve", "total")
+STAGES = ("preprocess", "pose", "fuse", "raycast", "sample", "transfer", "solve", "sun", "total")
 KEY = ("device", "device_name", "threads", "size", "stride", "rays", "bands", "voxel_size")
 COLUMNS = (*KEY, "frames_per_s", *(f"ms_{s}" for s in STAGES), "direction_deg", "si_rmse_upper", "si_rmse_sphere",
            "scenes", "frames", "frames_timed", "warp", "open3d", "fusion_on", "date")
