@@ -72,7 +72,8 @@ class LightingConfig:
     change_threshold: float = 1.0  # restart the filter when the prediction fits (1 + this) x worse than usual
     # Share of the filter's precision kept when a frame reaches a new view of the history (photoreg.lighting.
     # temporal): the solve already holds the earlier views' samples. Generated 12-frame tabletop: direction
-    # 12.6 -> 9.5 degrees, si-RMSE 0.096 -> 0.086 at 0.3 (0.1: 8.8 / 0.087, ICL-NUIM flicker +18% instead of +8%).
+    # 12.6 -> 9.5 degrees, si-RMSE 0.096 -> 0.086 at 0.3; 0.1: 8.8 / 0.087 but ICL-NUIM flicker 0.037 -> 0.044
+    # instead of 0.040 (benchmarks/lighting_accuracy.md).
     new_view_share: float = 0.3
     # Samples of earlier frames solved with the current ones (photoreg.lighting.history): a random subset of at
     # most this many in which older views fade, 0 = the current view only.

@@ -1,6 +1,8 @@
 """The history of lighting samples (photoreg.lighting.history) and its use in the pipeline."""
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 import pytest
 
@@ -75,6 +77,18 @@ def test_history_keeps_views_not_frames():
     np.testing.assert_allclose(share[[2, 5, 8]], [1 / 4, 1 / 4, 1 / 2], atol=0.03)
     with pytest.raises(ValueError, match="view_deg"):
         SampleHistory(10, view_deg=-1.0)
+
+
+def test_new_views_and_a_view_without_samples():
+    """is_new_view answers what add() would do; a frame without samples (black) is no new view, quietly."""
+    hist = SampleHistory(100, view_deg=10.0)
+    assert hist.is_new_view(frame_samples(0, 50), pose_at(0.0))   # nothing kept yet
+    hist.add(frame_samples(0, 50), pose_at(0.0))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert not hist.is_new_view(frame_samples(1, 0), pose_at(90.0))
+    assert hist.is_new_view(frame_samples(1, 50), pose_at(90.0))
+    assert not hist.is_new_view(frame_samples(1, 50), pose_at(2.0))
 
 
 def test_history_view_deg_is_checked(tmp_path):

@@ -112,8 +112,9 @@ class SampleHistory:
         self.kept, self.views = merged, views
 
     def is_new_view(self, current: Samples, pose: np.ndarray | None) -> bool:
-        """Whether `current`, seen from `pose`, would join as a new view (add() keeps it apart)."""
-        return self._newest_rows(current, pose) is None
+        """Whether `current`, seen from `pose`, would join as a new view (add() keeps it apart); a view without
+        samples (a black frame) adds nothing, so it is none."""
+        return len(current) > 0 and self._newest_rows(current, pose) is None
 
     def _newest_rows(self, current: Samples, pose: np.ndarray | None) -> np.ndarray | None:
         """Mask of the kept rows of the newest view when `current`, seen from `pose`, is near it and some of them
