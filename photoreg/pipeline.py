@@ -227,10 +227,7 @@ class Pipeline:
                 if "bounce" in sol.terms:
                     diag.bounce_radiance = np.round(sol.terms["bounce"], 7).tolist()
                 diag.exposure_gain = gain
-                if self.filter is not None:
-                    new_view = self.history is not None and self.history.is_new_view(current, pose)
-                    filtered, diag.change_detected = self.filter.update(sol, new_view)
-                    F = Lighting(filtered)
+                new_view = False   # whether the history took this frame's samples as a new view
                 if self.history is not None:  # keep the view's samples its own solve fitted, if enough
                     # without an own solve: those the solve of the current and kept samples fitted (the current
                     # view's rows come first; every usable sample instead cost TUM's held-out residual 0.226 -> 0.238)
@@ -239,11 +236,14 @@ class Pipeline:
                             fit.samples[(fit.samples < len(current)) & (fit.weights > 0)])
                     cfg = self.solver_cfg
                     if rows.size >= cfg.min_samples_factor * cfg.fit_bands ** 2:
-                        self.history.add(current.take(rows), pose)
+                        new_view = self.history.add(current.take(rows), pose)
                     elif data is not current:  # a black, saturated or hole-ridden view
                         diag.weak = True
                         diag.notes.append("too few usable samples in this view: the lighting rests on earlier "
                                           "views' samples")
+                if self.filter is not None:
+                    filtered, diag.change_detected = self.filter.update(sol, new_view)
+                    F = Lighting(filtered)
                 if self.exposure is not None:
                     self.exposure.update(points, current.radiance)
             if self.render is not None:

@@ -80,15 +80,14 @@ def test_history_keeps_views_not_frames():
 
 
 def test_new_views_and_a_view_without_samples():
-    """is_new_view answers what add() would do; a frame without samples (black) is no new view, quietly."""
+    """add() says whether the frame joined as a new view; a frame without samples (black) is none, quietly."""
     hist = SampleHistory(100, view_deg=10.0)
-    assert hist.is_new_view(frame_samples(0, 50), pose_at(0.0))   # nothing kept yet
-    hist.add(frame_samples(0, 50), pose_at(0.0))
+    assert hist.add(frame_samples(0, 50), pose_at(0.0))   # nothing kept yet
     with warnings.catch_warnings():
         warnings.simplefilter("error")
-        assert not hist.is_new_view(frame_samples(1, 0), pose_at(90.0))
-    assert hist.is_new_view(frame_samples(1, 50), pose_at(90.0))
-    assert not hist.is_new_view(frame_samples(1, 50), pose_at(2.0))
+        assert not hist.add(frame_samples(1, 0), pose_at(90.0))
+    assert not hist.add(frame_samples(1, 50), pose_at(2.0))   # takes view 0's place
+    assert hist.add(frame_samples(2, 50), pose_at(90.0))
 
 
 def test_history_view_deg_is_checked(tmp_path):
@@ -161,8 +160,9 @@ def test_the_views_own_solve_runs_only_for_the_light_search(tmp_path, monkeypatc
 
 
 def test_the_filter_is_told_when_a_frame_reaches_a_new_view(tmp_path, monkeypatch):
-    """The pipeline passes the history's verdict to the filter: the first frame and a frame 11 degrees on are
-    new views, the same pose again is not (photoreg.lighting.temporal: the prior's precision is discounted)."""
+    """The pipeline passes the history's verdict (SampleHistory.add) to the filter: the first frame and a frame
+    11 degrees on are new views, the same pose again is not (photoreg.lighting.temporal: the prior's precision is
+    discounted)."""
     k = Intrinsics(64, 48, 56.0, 56.0, 31.5, 23.5, 5000.0)
     rec = open_recording(write_recording(tmp_path / "rec", k, 4, with_gt=False))   # 11.5 degrees a frame
     flags, update = [], pipeline_module.LightingFilter.update

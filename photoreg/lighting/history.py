@@ -85,12 +85,13 @@ class SampleHistory:
         return current if self.kept is None or self.kept.transfer.shape[1] != current.transfer.shape[1] \
             else current.concat(self.kept)
 
-    def add(self, current: Samples, pose: np.ndarray | None = None) -> None:
+    def add(self, current: Samples, pose: np.ndarray | None = None) -> bool:
         """Offer a frame's samples, seen from `pose` (4x4 camera-to-world; None: a new view): a new view's join
         the kept ones and a random `capacity` of all are kept; near the newest view (module docstring) a random
-        subset of them, as many as that view still has, takes its place."""
+        subset of them, as many as that view still has, takes its place. Returns whether they joined as a new
+        view (a frame without samples adds nothing: False)."""
         if len(current) == 0:
-            return
+            return False
         if self.kept is not None and self.kept.transfer.shape[1] != current.transfer.shape[1]:
             self.kept = self.newest = None   # another band count: the kept transfer no longer fits
         mine = self._newest_rows(current, pose)
@@ -100,7 +101,7 @@ class SampleHistory:
             pick = current.take(np.sort(self.rng.choice(len(current), k, replace=False)))
             self.kept = self.kept.take(~mine).concat(pick)
             self.views = np.concatenate([self.views[~mine], np.full(k, view)])
-            return
+            return False
         view = 0 if self.newest is None else self.newest[0] + 1
         self.newest = (view, None if pose is None else np.asarray(pose, dtype=np.float64))
         merged, views = current, np.full(len(current), view)
@@ -110,11 +111,7 @@ class SampleHistory:
             rows = np.sort(self.rng.choice(len(merged), self.capacity, replace=False))
             merged, views = merged.take(rows), views[rows]
         self.kept, self.views = merged, views
-
-    def is_new_view(self, current: Samples, pose: np.ndarray | None) -> bool:
-        """Whether `current`, seen from `pose`, would join as a new view (add() keeps it apart); a view without
-        samples (a black frame) adds nothing, so it is none."""
-        return len(current) > 0 and self._newest_rows(current, pose) is None
+        return True
 
     def _newest_rows(self, current: Samples, pose: np.ndarray | None) -> np.ndarray | None:
         """Mask of the kept rows of the newest view when `current`, seen from `pose`, is near it and some of them
