@@ -93,18 +93,20 @@ def test_virtual_visibility_never_exceeds_real(tmp_path):
     assert np.allclose(tr.transfer[:, 0], tr.transfer[0, 0])                       # open floor: same R_TR
 
 
-def _render_floor(tmp_path, shadows: str):
-    """A cube on the real floor seen from above, lit from above: (camera, composite, layers, gbuffer)."""
+def _render_floor(tmp_path, shadows: str, stride: int = 2, surface: bool = False):
+    """A cube on the real floor seen from above, lit from above: (camera, composite, layers, gbuffer); with
+    `surface` the full-resolution real surface goes in too (composite.refine_seam)."""
     scene = load_scene([_cube(tmp_path, scale=0.2, albedo=[0.5, 0.5, 0.5])])
     floor, virt = _floor_grid(), voxel_grid(scene, 0.02, "cpu")
-    maps = raycast_surface(floor, INTR, LOOK_DOWN, 0.1, 3.0, stride=2)
-    gb = GBufferRenderer(scene, INTR, 2).render(LOOK_DOWN, raycast_surface(floor, INTR, LOOK_DOWN, 0.1, 3.0).depth)
+    maps = raycast_surface(floor, INTR, LOOK_DOWN, 0.1, 3.0, stride=stride)
+    full = raycast_surface(floor, INTR, LOOK_DOWN, 0.1, 3.0)
+    gb = GBufferRenderer(scene, INTR, 2).render(LOOK_DOWN, full.depth)
     up = sh.sh_basis(np.array([[0, 0, 1.0]]), 3)[0]
     F = np.outer([1.0, 0.9, 0.8], 2.0 * up) + np.outer([0.2, 0.2, 0.2], np.eye(9)[0])  # sky lobe overhead
     camera = np.ones((48, 64, 1), np.float32) * (0.5 * shade(F, sh.unoccluded_transfer(np.array([[0, 0, 1.0]]), 3)))
     camera = camera.astype(np.float32)                                # a floor of albedo 0.5 under F
     inp = RenderInput(camera, F, 1.0, floor, virt, maps, gb, scene.bounds,
-                      lambda b: make_direction_set(32, b, seed=0), 0.03, 0.3)
+                      lambda b: make_direction_set(32, b, seed=0), 0.03, 0.3, surface=full if surface else None)
     layers = get_renderer(shadows)(inp)
     return camera, composite(camera, layers), layers, gb
 
@@ -121,6 +123,24 @@ def test_shadow_darkens_floor_and_far_pixels_unchanged(tmp_path):
     assert np.all(out[real] <= camera[real] + 1e-6)              # the object only takes light away
     top = gb.coverage == 1
     assert out[top].min() > 0                                       # lit top face
+
+
+def test_no_seam_where_the_object_hides_stride_samples(tmp_path):
+    """Stride samples under the cube are fully shadowed; interpolated into the floor pixels beside it they drew
+    a dark seam along its silhouette. With the full-resolution surface those pixels get the ratio a stride-1
+    run gives them (composite.refine_seam); without it, they are darker."""
+    _, _, exact, gb = _render_floor(tmp_path, "voxel", stride=1)
+    _, _, seam, _ = _render_floor(tmp_path, "voxel", stride=4)
+    _, _, fixed, _ = _render_floor(tmp_path, "voxel", stride=4, surface=True)
+    ring = (cv2.dilate((gb.coverage > 0).astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
+            & (gb.coverage == 0))
+    assert ring.sum() > 20
+    assert np.allclose(fixed.ratio[ring], exact.ratio[ring], atol=1e-3)
+    assert seam.ratio[ring].mean() < exact.ratio[ring].mean() - 0.05
+    changed = (fixed.ratio != seam.ratio).any(axis=-1)                # within a stride of the silhouette only
+    assert not (changed & ~cv2.dilate((gb.coverage > 0).astype(np.uint8), np.ones((9, 9), np.uint8)).astype(bool)).any()
+    real = changed & (gb.coverage == 0)
+    assert np.allclose(fixed.ratio[real], exact.ratio[real], atol=1e-3)
 
 
 def test_none_renderer_leaves_real_pixels(tmp_path):
@@ -168,6 +188,22 @@ def test_demo_object_brightness_matches_path_tracer(demo_run):
         assert abs(lum - 1.0) < 0.10 and np.all(np.abs(ratio - 1.0) < 0.20), (f, lum, ratio)
 
 
+def test_demo_no_dark_seam_around_the_object(demo_run):
+    """The real pixels just outside the object (its mask dilated by one pixel) as bright as the path tracer's,
+    within 5% in luminance: at frame 20 they were 8.6% too dark (0.914) while the lighting stride's samples
+    hidden under the object were interpolated into them (composite.refine_seam: 0.975 at frame 20, 1.027 at 10)."""
+    from photoreg.io.images import read_exr
+    from photoreg.lighting.sh import LUMINANCE
+
+    for f in ("000010", "000020"):
+        gt = read_exr(REPO / "data" / "demo" / "insert" / f"{f}.exr")
+        est = read_exr(demo_run / "composite_linear" / f"{f}.exr")
+        mask = cv2.imread(str(REPO / "data" / "demo" / "insert_mask" / f"{f}.png"), cv2.IMREAD_GRAYSCALE) > 0
+        ring = cv2.dilate(mask.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool) & ~mask
+        lum = float((est[ring] @ LUMINANCE).mean() / (gt[ring] @ LUMINANCE).mean())
+        assert abs(lum - 1.0) < 0.05, (f, lum)
+
+
 def test_demo_lighting_against_the_path_tracer(demo_run):
     """The run's lighting (frames 0-20) against the generator's environment (Mitsuba, an independent
     renderer): median irradiance si-RMSE over the upper hemisphere 0.069 with the samples of earlier views
@@ -182,8 +218,10 @@ def test_demo_lighting_against_the_path_tracer(demo_run):
     assert m["direction_deg"]["median"] < 15.0
 
 
-@pytest.mark.xfail(reason="issue 5 open: the baseline pastes the path tracer's own object; frame 10 beats it "
-                          "(0.043 vs 0.078) but frame 20 does not (0.044 vs 0.020)", strict=False)
+@pytest.mark.xfail(reason="issue 5 open: the baseline pastes the path tracer's own object, its noise included; "
+                          "frame 10 beats it (0.042 vs 0.078) but frame 20 does not (0.038 vs 0.020; with the "
+                          "generator's true light 0.029, the object path-traced with other seeds 0.028)",
+                   strict=False)
 def test_demo_composite_beats_no_shadow_baseline(demo_run):
     from photoreg.bench.score import score_composites
 

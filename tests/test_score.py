@@ -3,13 +3,14 @@ from __future__ import annotations
 
 import json
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
 from photoreg.bench import metrics
-from photoreg.bench.score import format_report, score, score_command
+from photoreg.bench.score import format_report, score, score_command, true_light
 from photoreg.cli import main as cli_main
 from photoreg.io.images import linear_to_srgb, write_exr, write_png_rgb
 from photoreg.lighting import sh
@@ -250,3 +251,29 @@ def test_composite_flicker_over_changed_pixels(tmp_path):
     assert fl["composite"] == pytest.approx(math.exp(0.3) - 1.0, rel=1e-2)      # EXR stores half floats
     assert np.isfinite(fl["camera"]) and fl["camera"] < fl["composite"]
     assert composite_flicker(tmp_path / "empty", demo) is None
+
+
+def test_true_light_of_a_generated_recording(tmp_path):
+    """The demo's light for a renderer: exposure x the environment's SH, and its sun (elevation 45, azimuth 30
+    degrees, 4 degrees wide, irradiance 4) with the exposure; a yaw turns the sun about +z; no suns, no disc."""
+    import shutil
+
+    demo = Path(__file__).resolve().parents[1] / "data" / "demo"
+    gt = json.loads((demo / "lighting_gt.json").read_text())
+    F, sun = true_light(demo, 3)
+    assert np.allclose(F, gt["exposure"] * np.asarray(gt["sh"])[:, :9])
+    el, az = math.radians(45.0), math.radians(30.0)
+    assert np.allclose(sun["direction"], [math.cos(el) * math.cos(az), math.cos(el) * math.sin(az), math.sin(el)])
+    assert math.degrees(math.acos(np.dot(sun["direction"], sh.dominant_direction(F)))) < 30.0   # the SH agrees
+    assert np.isclose(sun["angle"], math.radians(2.0))
+    assert np.allclose(sun["irradiance"], gt["exposure"] * 4.0 * np.array([1.0, 0.92, 0.8]))
+    for name in ("lighting_gt.json", "scene.json"):
+        shutil.copy(demo / name, tmp_path / name)
+    scene = json.loads((tmp_path / "scene.json").read_text())
+    scene["lighting"]["yaw_deg"] = 90.0
+    (tmp_path / "scene.json").write_text(json.dumps(scene))
+    _, turned = true_light(tmp_path, 3)
+    assert np.allclose(turned["direction"], Rotation.from_euler("z", 90, degrees=True).apply(sun["direction"]))
+    scene["lighting"]["suns"] = []
+    (tmp_path / "scene.json").write_text(json.dumps(scene))
+    assert true_light(tmp_path, 3)[1] is None

@@ -32,7 +32,7 @@ from photoreg.synth.cameras import default_intrinsics, look_at  # noqa: E402
 from photoreg.synth.depth import depth_sigma, kinect_like  # noqa: E402
 from photoreg.synth.environment import (ProceduralSky, emitter_rotation, environment_sh,  # noqa: E402
                                         load_environment, node_directions)
-from photoreg.synth.generate import SynthConfig, generate  # noqa: E402
+from photoreg.synth.generate import SynthConfig, generate, rerender_inserts  # noqa: E402
 from photoreg.synth.render import MitsubaScene  # noqa: E402
 from photoreg.synth.scenes import SceneObject, placement  # noqa: E402
 from photoreg.types import Intrinsics  # noqa: E402
@@ -298,6 +298,19 @@ def test_cli_recording_files(recording):
         assert uv[:, 1].min() - 1 <= v.min() and v.max() <= uv[:, 1].max() + 1
         rgb = cv2.cvtColor(cv2.imread(str(recording / "rgb" / f"{i:06d}.png")), cv2.COLOR_BGR2RGB)
         assert np.abs(png.astype(int) - rgb)[mask].mean() > 10  # the object is there
+
+
+def test_rerender_inserts_is_the_insert_up_to_noise(recording):
+    """The insert frames rendered again with other seeds: the same picture (object and surroundings as bright,
+    within render noise), not the same pixels."""
+    again = rerender_inserts(recording)
+    assert sorted(again) == [1, 2, 4]
+    for i, img in again.items():
+        exr = read_exr(recording / "insert" / f"{i:06d}.exr")
+        mask = cv2.imread(str(recording / "insert_mask" / f"{i:06d}.png"), cv2.IMREAD_GRAYSCALE) == 255
+        assert img.shape == exr.shape and np.abs(img - exr).mean() > 1e-3           # other noise
+        assert abs(img[mask].mean() / exr[mask].mean() - 1.0) < 0.1
+        assert abs(img.mean() / exr.mean() - 1.0) < 0.03
 
 
 def test_kinect_like_noise():

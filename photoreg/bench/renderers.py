@@ -7,7 +7,10 @@ pixels any renderer changed). The pipeline runs each recording once with the ses
 every frame each registered renderer is applied to the same RenderInput (RenderStage.last_input), so
 all renderers see the same lighting, geometry and G-buffer and differ only in how they shadow. Timing
 is the renderer call alone (the layers; the shared G-buffer and the compositing are left out), after
-one untimed warm-up call per renderer (kernel compilation, weight loading).
+one untimed warm-up call per renderer (kernel compilation, weight loading). On the orbit each renderer
+also runs with the generator's true light (the error left is the renderer's), and the no-shadow baseline
+is scored twice: with the path tracer's own object and with that object rendered again with other seeds
+(synth.generate.rerender_inserts; the baseline without the advantage of sharing the ground truth's noise).
 
 Rows go to benchmarks/results/renderers_<device>.json; the report (markdown table and a PNG of
 ms per frame against si-RMSE) is rebuilt from every such file, so CPU and GPU runs end up side by side.
@@ -15,22 +18,28 @@ ms per frame against si-RMSE) is rebuilt from every such file, so CPU and GPU ru
 from __future__ import annotations
 
 import json
+import math
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 
 from ..io.atomic import write_json, write_text
+from ..lighting import sh
 from . import metrics
 from .scenes import SCENE_CACHE, cached_scene
 
 RESULTS_GLOB = "renderers_*.json"
 
 
-def run_all_renderers(session, frames: list[int], renderers: dict) -> dict[str, dict[int, tuple[np.ndarray, float]]]:
+def run_all_renderers(session, frames: list[int], renderers: dict,
+                      light: tuple[np.ndarray, dict | None] | None = None) -> dict[str, dict[int, tuple[np.ndarray, float]]]:
     """Run the pipeline over `frames` of the session's recording; at each frame every renderer on the same
-    RenderInput: {renderer: {frame: (composite linear HxWx3, ms)}}."""
+    RenderInput: {renderer: {frame: (composite linear HxWx3, ms)}}. With `light` (score.true_light: the
+    generator's SH, at full band count, and sun) each renderer also runs with it in place of the estimate, as
+    "<renderer>, true light" (ms of those calls: NaN)."""
     from ..io.recording import iter_frames, open_recording
     from ..pipeline import Pipeline
     from ..render.composite import composite
@@ -54,6 +63,9 @@ def run_all_renderers(session, frames: list[int], renderers: dict) -> dict[str, 
             layers = fn(inp)
             ms = (time.perf_counter() - t0) * 1000.0
             out[name][frame.index] = (composite(inp.camera, layers), ms)
+            if light is not None:
+                true = replace(inp, F=sh.truncate(light[0], sh.bands_of(inp.F.shape[1])), gain=1.0, sun=light[1])
+                out.setdefault(f"{name}, true light", {})[frame.index] = (composite(inp.camera, fn(true)), math.nan)
         print(f"\rbench renderers: {Path(session.recording.path).name} frame {k + 1}/{len(frames)}", end="",
               file=sys.stderr, flush=True)
     print(file=sys.stderr)
@@ -70,18 +82,22 @@ def _session_for(recording: Path, objects_from: Path, device: str):
 
 
 def bench_scene(kind: str, orbit: Path, static: Path, device: str, renderers: dict) -> list[dict]:
-    """Rows (one per renderer, plus the no-shadow baseline) of one scene kind."""
+    """Rows of one scene kind: per renderer with the estimated lighting and with the generator's (error only;
+    what is left is the renderer's), the no-shadow baseline, and that baseline with an object path-traced
+    again with other seeds (the noise floor: no renderer shares the ground truth's own Monte Carlo noise)."""
     from ..io.images import read_rgb, srgb_to_linear
-    from .score import color_files, insert_truth
+    from ..synth.generate import rerender_inserts
+    from .score import color_files, insert_truth, load_gt, true_light
 
     truths = insert_truth(orbit)
-    runs = run_all_renderers(_session_for(orbit, orbit, device), list(range(truths[-1].frame + 1)), renderers)
+    light = true_light(orbit, sh.bands_of(load_gt(orbit).shape[1]))
+    runs = run_all_renderers(_session_for(orbit, orbit, device), list(range(truths[-1].frame + 1)), renderers, light)
     cams = [srgb_to_linear(read_rgb(p)) for p in color_files(static)]
     still = run_all_renderers(_session_for(static, orbit, device), list(range(len(cams))), renderers)
     region = metrics.changed_region([c for r in still.values() for c, _ in r.values()],
                                     [cams[i] for r in still.values() for i in r])
 
-    def row(name: str, errs: list[dict], ms, flicker: float) -> dict:
+    def row(name: str, errs: list[dict], ms, flicker: float | None) -> dict:
         return {"scene": kind, "renderer": name, "ms_mean": ms, "rmse": float(np.mean([e["rmse"] for e in errs])),
                 "si_rmse": float(np.mean([e["si_rmse"] for e in errs])), "flicker": flicker,
                 "n_inserts": len(truths)}
@@ -89,11 +105,17 @@ def bench_scene(kind: str, orbit: Path, static: Path, device: str, renderers: di
     rows = []
     for name, per_frame in runs.items():
         errs = [metrics.composite_metrics(per_frame[t.frame][0], t.gt, t.roi) for t in truths]
+        if name not in still:   # a true-light run: accuracy only
+            rows.append(row(name, errs, None, None))
+            continue
         ms = [m for _, m in per_frame.values()] + [m for _, m in still[name].values()]
         rows.append(row(name, errs, float(np.mean(ms)),
                         metrics.image_flicker([still[name][i][0] for i in sorted(still[name])], region)))
     rows.append(row("baseline: path-traced object, no shadow", [t.baseline() for t in truths], None,
                     metrics.image_flicker(cams, region)))
+    again = rerender_inserts(orbit)
+    rows.append(row("baseline, object path-traced with other seeds", [metrics.composite_metrics(
+        metrics.no_shadow_baseline(t.camera, again[t.frame], t.mask), t.gt, t.roi) for t in truths], None, None))
     return rows
 
 
@@ -106,7 +128,11 @@ def write_report(results_dir: Path, md: Path, png: Path) -> None:
              "linear RGB over the object's region of interest (mask dilated 40 px) against the path tracer, "
              "mean over the insert frames; flicker on a static camera over the pixels the insertion changed "
              "(the baseline row: the camera frames' own flicker there, i.e. render noise). ms: the renderer "
-             "call alone, mean per frame.", ""]
+             "call alone, mean per frame. '<renderer>, true light': the same renderer on the same frames given "
+             "the generator's lighting (its SH and sun) instead of the estimate, so the error left is the "
+             "renderer's. The baseline pastes the path tracer's own object, Monte Carlo noise included, which no "
+             "renderer can match; 'baseline, object path-traced with other seeds' pastes the object rendered "
+             "again with other seeds: the same baseline as an exact renderer would score it.", ""]
     for run in runs:
         lines += [f"## {run['device_name']} ({run['device']})", "",
                   f"Command: `{run['command']}`; {run['date']}; Warp {run['warp']}, Open3D {run['open3d']}; "
@@ -115,8 +141,9 @@ def write_report(results_dir: Path, md: Path, png: Path) -> None:
                   "| scene | renderer | ms/frame | RMSE | si-RMSE | flicker |", "|---|---|---:|---:|---:|---:|"]
         for r in run["rows"]:
             ms = "-" if r["ms_mean"] is None else f"{r['ms_mean']:.1f}"
+            flicker = "-" if r.get("flicker") is None else f"{r['flicker']:.4f}"
             lines.append(f"| {r['scene']} | {r['renderer']} | {ms} | {r['rmse']:.4f} | {r['si_rmse']:.4f} | "
-                         f"{r['flicker']:.4f} |")
+                         f"{flicker} |")
         lines.append("")
     write_text(md, "\n".join(lines))
     import matplotlib
@@ -177,7 +204,8 @@ def renderers_command(args) -> int:
     write_report(results, Path(args.md), Path(args.plot))
     for r in rows:
         ms = "-" if r["ms_mean"] is None else f"{r['ms_mean']:8.1f}"
-        print(f"{r['scene']:12s} {r['renderer']:40s} ms {ms}  rmse {r['rmse']:.4f}  si-rmse {r['si_rmse']:.4f}  "
-              f"flicker {r['flicker']:.4f}")
+        flicker = "-" if r["flicker"] is None else f"{r['flicker']:.4f}"
+        print(f"{r['scene']:12s} {r['renderer']:48s} ms {ms}  rmse {r['rmse']:.4f}  si-rmse {r['si_rmse']:.4f}  "
+              f"flicker {flicker}")
     print(f"report: {args.md}, {args.plot}")
     return 0

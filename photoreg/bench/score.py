@@ -22,6 +22,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from ..io.atomic import write_json
 from ..io.images import read_exr, read_rgb, srgb_to_linear
@@ -66,6 +67,26 @@ def load_gt(recording: str | Path) -> np.ndarray:
     if not np.isfinite(gt).all():
         raise ValueError(f"{path}: ground-truth SH has non-finite values")
     return gt
+
+
+def true_light(recording: str | Path, bands: int) -> tuple[np.ndarray, dict | None]:
+    """The generator's light in the units of a RenderInput (gain 1): exposure times the environment's SH
+    (lighting_gt.json) to `bands`, and its brightest sun disc as SolveDiagnostics.sun has a traced light
+    (world direction, radius in radians, irradiance per channel; None for an HDR map without suns). With it a
+    renderer is scored without the lighting estimate's error (photoreg bench renderers)."""
+    from ..synth.environment import Sun
+
+    recording = Path(recording)
+    gt = json.loads((recording / "lighting_gt.json").read_text())
+    F = float(gt["exposure"]) * sh.truncate(load_gt(recording), bands)
+    sky = json.loads((recording / "scene.json").read_text())["lighting"]
+    suns = [Sun(**{**s, "colour": tuple(s["colour"])}) for s in sky.get("suns", [])]
+    if not suns:
+        return F, None
+    sun = max(suns, key=lambda s: s.irradiance * float(np.mean(s.colour)))
+    d = Rotation.from_euler("z", float(sky.get("yaw_deg", 0.0)), degrees=True).apply(sun.direction())  # -> world
+    return F, {"direction": d.tolist(), "angle": math.radians(sun.diameter_deg) / 2.0,
+               "irradiance": (float(gt["exposure"]) * sun.irradiance * np.asarray(sun.colour)).tolist(), "gain": 1.0}
 
 
 def load_lighting(out: str | Path) -> dict[int, np.ndarray]:

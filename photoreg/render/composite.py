@@ -27,6 +27,7 @@ from photoreg.render.gbuffer import GBuffer
 from photoreg.render.scene import VirtualScene
 
 EPS_REL = 1e-2  # eps = this share of the mean F.R_TR over the shaded real points (per channel)
+VIRTUAL_COVERAGE = 0.5  # a pixel shows the virtual surface, not the real one, from this coverage up
 
 
 @dataclass
@@ -47,6 +48,7 @@ class RenderInput:
     light_rays: int = 0             # rays over the dominant light's disc (0: the light stays in F's SH)
     scene: VirtualScene | None = None  # the placed objects (renderers that work per object need it)
     sun: dict | None = None         # the light traced from its shadows (SolveDiagnostics.sun), when found
+    surface: SurfaceMaps | None = None  # real surface at every pixel (stride 1): refine_seam (None: no refinement)
 
     @cached_property
     def light(self) -> ParametricLight:
@@ -122,6 +124,26 @@ def upsample_ratio(ratio_s: np.ndarray, near: np.ndarray, stride: int, shape: tu
     out[y0:y1, x0:x1] = cv2.remap(ratio_s.astype(np.float32), xs, ys, cv2.INTER_LINEAR,
                                   borderMode=cv2.BORDER_REPLICATE).reshape(y1 - y0, x1 - x0, -1)
     return out
+
+
+def refine_seam(ratio: np.ndarray, inp: RenderInput, near: np.ndarray,
+                ratio_at: Callable[[np.ndarray, np.ndarray], np.ndarray]) -> None:
+    """Replace, in place, the interpolated full-resolution ratio (upsample_ratio of the `near` stride samples)
+    by ratio_at(points, normals) -> (N, 3) at the real pixels whose bilinear taps include a sample the objects
+    hide (coverage >= VIRTUAL_COVERAGE there): that sample's real surface lies under or behind an object, and
+    its ratio, dark there, drew a seam along the object's silhouette (demo frame 20 with the true lighting:
+    the pixels just outside the object 10% darker than the path tracer's, composite si-RMSE 0.038 against
+    0.029 for the path-traced object pasted). Needs inp.surface (none: nothing changes)."""
+    if inp.surface is None:
+        return
+    hidden = near & (at_stride(inp.gbuffer.coverage, inp.maps) >= VIRTUAL_COVERAGE)
+    if not hidden.any():
+        return
+    shown = upsample_ratio(np.where(hidden, 0.0, 1.0)[..., None].astype(np.float32), near, inp.maps.stride,
+                           ratio.shape[:2])[..., 0]
+    band = (shown < 1.0) & (inp.gbuffer.coverage < 1.0) & inp.surface.valid
+    if band.any():
+        ratio[band] = ratio_at(inp.surface.vertex[band], inp.surface.normal[band])
 
 
 def composite(camera: np.ndarray, layers: Layers) -> np.ndarray:

@@ -18,7 +18,7 @@ import os
 import numpy as np
 
 from photoreg.lighting.parametric import receiver_opacity
-from photoreg.render.composite import Layers, RenderInput, near_objects, upsample_ratio
+from photoreg.render.composite import Layers, RenderInput, near_objects, refine_seam, upsample_ratio
 from photoreg.render.neural_soft_weights import NeuralSoftSettings, find_weights, load_weights, weights_key
 from photoreg.render.scene import VirtualObject
 from photoreg.render.shadow_mlp import ShadowMLP, predict
@@ -84,15 +84,19 @@ def render_neural_soft(inp: RenderInput) -> Layers:
     maps = inp.maps
     extent = float((inp.bounds[1] - inp.bounds[0]).max())
     near = near_objects(maps, inp.bounds, PLANE_SIDE * extent)
-    pts, normals = maps.vertex[near], maps.normal[near]
-    vis = np.ones(len(pts), np.float32)
     notes = list(light.notes)
-    for obj in inp.scene.objects:
-        tol = PLANE_TOLERANCE * float((obj.vertices.max(0) - obj.vertices.min(0)).max()) + inp.offset
-        v, n = plane_visibility(obj, pts, light.direction, tol)
-        vis *= v
-        notes += n
+
+    def ratio_at(pts: np.ndarray, normals: np.ndarray) -> np.ndarray:
+        vis = np.ones(len(pts), np.float32)
+        for obj in inp.scene.objects:
+            tol = PLANE_TOLERANCE * float((obj.vertices.max(0) - obj.vertices.min(0)).max()) + inp.offset
+            v, n = plane_visibility(obj, pts, light.direction, tol)
+            vis *= v
+            notes.extend(x for x in n if x not in notes)
+        return 1.0 - receiver_opacity(light, normals) * (1.0 - vis)[:, None]
+
     ratio_s = np.ones(maps.vertex.shape, np.float32)
-    ratio_s[near] = 1.0 - receiver_opacity(light, normals) * (1.0 - vis)[:, None]
+    ratio_s[near] = ratio_at(maps.vertex[near], maps.normal[near])
     ratio = upsample_ratio(ratio_s, near, maps.stride, inp.camera.shape[:2])
+    refine_seam(ratio, inp, near, ratio_at)
     return Layers(base.colour, base.alpha, ratio, base.notes + notes)

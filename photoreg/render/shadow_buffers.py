@@ -23,12 +23,11 @@ import numpy as np
 from photoreg.kernels.raycast import SurfaceMaps
 from photoreg.kernels.shadowmap import ShadowMap
 from photoreg.lighting.parametric import ParametricLight
-from photoreg.render.composite import at_stride
+from photoreg.render.composite import VIRTUAL_COVERAGE, at_stride
 from photoreg.render.gbuffer import GBuffer
 
 CHANNELS = ("view_depth", "normal_x", "normal_y", "normal_z", "emitter_depth", "receiver_depth", "cosine_size")
 SM_RESOLUTION = 256     # shadow-map texels per side (the map is fitted to the objects' footprint)
-VIRTUAL_COVERAGE = 0.5  # a pixel's receiver is the virtual surface from this coverage up
 
 
 @dataclass

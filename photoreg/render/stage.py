@@ -43,13 +43,13 @@ class RenderStage:
         real grid and its stride maps, pose (camera-to-world), lighting F (3, B*B), exposure gain and the
         traced light (SolveDiagnostics.sun) when the solve found one."""
         rc, lc = self.session.reconstruction, self.session.lighting
-        real_depth = raycast_surface(grid, self.intrinsics, pose, rc.depth_min, rc.depth_max, stride=1).depth
-        real_depth = np.where(real_depth > 0, real_depth, np.nan_to_num(sensor_depth)).astype(np.float32)
+        surface = raycast_surface(grid, self.intrinsics, pose, rc.depth_min, rc.depth_max, stride=1)
+        real_depth = np.where(surface.depth > 0, surface.depth, np.nan_to_num(sensor_depth)).astype(np.float32)
         gb = self.gbuffer.render(pose, real_depth, tolerance=0.5 * rc.voxel_size)
         inp = RenderInput(camera=camera, F=np.asarray(F, np.float64), gain=float(gain), grid=grid,
                           virtual=self.virtual, maps=maps, gbuffer=gb, bounds=self.scene.bounds,
                           directions=self.directions, offset=lc.ray_offset_voxels * rc.voxel_size,
                           ray_length=lc.ray_length, light_rays=self.session.render.light_rays,
-                          scene=self.scene, sun=sun)
+                          scene=self.scene, sun=sun, surface=surface)
         self.last_input, self.last = inp, self.renderer(inp)
         return composite(camera, self.last)

@@ -7,8 +7,8 @@ import numpy as np
 from photoreg.kernels.transfer import radiance_transfer
 from photoreg.lighting import sh
 from photoreg.lighting.parametric import ParametricLight, cone_directions
-from photoreg.render.composite import (Layers, RenderInput, at_stride, bounce, near_objects, shade, shadow_ratio,
-                                      upsample_ratio)
+from photoreg.render.composite import (Layers, RenderInput, at_stride, bounce, near_objects, refine_seam, shade,
+                                      shadow_ratio, upsample_ratio)
 
 
 CLOSE = 0.5  # the real surface within this share of the objects' size is what their blocked rays see
@@ -61,10 +61,11 @@ def _shading(inp: RenderInput, F: np.ndarray, passes, l_real, l_virt):
 
 def render_voxel(inp: RenderInput) -> Layers:
     """R_TR / R_TRV in one ray pass at the real surface near the objects (lighting stride, interpolated
-    back), and R_TRV at the virtual pixels with real geometry occluding (real shadows on the object);
-    one ambient bounce each way (composite.bounce). With light_rays > 0 the dominant light is split out
-    of F (photoreg.lighting.parametric) and traced as a disc of that many rays: sharp shadows that a
-    few SH bands cannot hold; the residual SH keeps the rest."""
+    back; at full resolution along the objects' silhouettes, composite.refine_seam), and R_TRV at the
+    virtual pixels with real geometry occluding (real shadows on the object); one ambient bounce each way
+    (composite.bounce). With light_rays > 0 the dominant light is split out of F
+    (photoreg.lighting.parametric) and traced as a disc of that many rays: sharp shadows that a few SH bands
+    cannot hold; the residual SH keeps the rest."""
     maps, gb = inp.maps, inp.gbuffer
     F, light, notes = inp.F, None, []
     if inp.light_rays > 0:
@@ -80,10 +81,14 @@ def render_voxel(inp: RenderInput) -> Layers:
     on_object = _transfers(inp, F, light, gb.position[covered], gb.normal[covered])
     colour = _virtual_colour(inp, _shading(inp, F, on_object, l_real, l_real)[1], covered)
     l_virt = colour[covered].mean(axis=0) if covered.any() else np.zeros(3, np.float32)
+
+    def ratio_at(points: np.ndarray, normals: np.ndarray) -> np.ndarray:
+        return shadow_ratio(*_shading(inp, F, _transfers(inp, F, light, points, normals), l_real, l_virt))
+
     ratio_s = np.ones(maps.vertex.shape, np.float32)
-    ratio_s[near] = shadow_ratio(*_shading(inp, F, _transfers(inp, F, light, maps.vertex[near], maps.normal[near]),
-                                           l_real, l_virt))
+    ratio_s[near] = ratio_at(maps.vertex[near], maps.normal[near])
     ratio = upsample_ratio(ratio_s, near, maps.stride, inp.camera.shape[:2])
+    refine_seam(ratio, inp, near, ratio_at)
     # What the object's blocked rays see is the real surface next to it, darkened by the object's own
     # shadow, not the mean of the whole neighbourhood: re-shade it with that (demo frames 10 and 20 against
     # the path tracer: the object's darkest third 24% -> 14% too bright at frame 10, the whole object at

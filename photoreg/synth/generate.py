@@ -9,6 +9,7 @@ lighting estimated from the images should match exposure * sh.
 from __future__ import annotations
 
 import importlib.metadata
+import json
 import shlex
 import time
 from dataclasses import asdict, dataclass, field
@@ -60,6 +61,11 @@ class SynthConfig:
         args += ["--direct-only"] * self.direct_only + ["--no-noise"] * (not self.noise)
         args += ["--mesh", self.mesh] if self.mesh else []
         return shlex.join(args)
+
+    @property
+    def max_depth(self) -> int:
+        """Path length of the integrator: 2 (direct light only) or 6."""
+        return 2 if self.direct_only else 6
 
     def validate(self) -> None:
         """Clear errors naming the option for values the generator cannot use."""
@@ -124,6 +130,41 @@ def _session_toml(obj) -> str:
             f"[render]\nshadows = \"voxel\"\n\n[output]\ndir = \"out\"\n")
 
 
+def _world(cfg: SynthConfig):
+    """(scene layout, environment image, its scene.json description, emitter rotation, intrinsics, camera
+    poses) of a config."""
+    layout = build_scene(cfg.scene, cfg.mesh)
+    env_image, env_desc = load_environment(cfg.env, cfg.sky)
+    return (layout, env_image, env_desc, emitter_rotation(cfg.yaw), default_intrinsics(cfg.width, cfg.height),
+            camera_path(cfg.camera, cfg.frames, layout.rig, cfg.seed))
+
+
+def _insert_scene(cfg: SynthConfig, layout, env_image: np.ndarray, rotation: np.ndarray, K) -> MitsubaScene:
+    """The scene with the virtual object added (the insert renders)."""
+    return MitsubaScene(layout.objects + [layout.insert.scene_object()], env_image, rotation, K, cfg.max_depth)
+
+
+def _frame_seed(cfg: SynthConfig, i: int, other: bool = False) -> int:
+    """Monte Carlo seed of frame i (the camera frame and its insert share it: correlated noise); `other`: a
+    seed no frame of any recording uses (rerender_inserts)."""
+    return (cfg.seed * 100003 + i + (2**31 if other else 0)) % 2**32
+
+
+def rerender_inserts(recording: str | Path) -> dict[int, np.ndarray]:
+    """Every insert frame of a recording made by generate(), rendered again with another Monte Carlo seed
+    (linear, exposure applied, as insert/NNNNNN.exr): the same image up to render noise. An exact renderer
+    does not share the ground truth's noise, so this is what it would score (photoreg bench renderers);
+    the 'no shadow' baseline pastes the ground truth's own object, noise included."""
+    recording = Path(recording)
+    meta = json.loads((recording / "scene.json").read_text())
+    cfg = SynthConfig(**meta["config"])
+    mitsuba()
+    layout, env_image, _, rotation, K, poses = _world(cfg)
+    scene = _insert_scene(cfg, layout, env_image, rotation, K)
+    return {i: meta["exposure"] * scene.render(poses[i], cfg.spp, _frame_seed(cfg, i, other=True))
+            for i in meta["insert"]["frames"]}
+
+
 def generate(cfg: SynthConfig, log: Callable[[str], None] | None = print) -> Path:
     """Render the recording described by `cfg` into cfg.out (which must be absent or empty); returns its path."""
     cfg.validate()
@@ -133,23 +174,17 @@ def generate(cfg: SynthConfig, log: Callable[[str], None] | None = print) -> Pat
     say = log or (lambda _msg: None)
     t_start = time.perf_counter()
     mi = mitsuba()
-    layout = build_scene(cfg.scene, cfg.mesh)
-    env_image, env_desc = load_environment(cfg.env, cfg.sky)
-    rotation = emitter_rotation(cfg.yaw)
+    layout, env_image, env_desc, rotation, K, poses = _world(cfg)
     sh = environment_sh(env_image, rotation, BANDS)
-    K = default_intrinsics(cfg.width, cfg.height)
-    poses = camera_path(cfg.camera, cfg.frames, layout.rig, cfg.seed)
     inserts = insert_indices(cfg.insert_frames, cfg.frames)
-    max_depth = 2 if cfg.direct_only else 6
-    base = MitsubaScene(layout.objects, env_image, rotation, K, max_depth)
-    with_object = (MitsubaScene(layout.objects + [layout.insert.scene_object()], env_image, rotation, K, max_depth)
-                   if inserts else None)
+    base = MitsubaScene(layout.objects, env_image, rotation, K, cfg.max_depth)
+    with_object = _insert_scene(cfg, layout, env_image, rotation, K) if inserts else None
     writer = NativeWriter(out, K, source=f"photoreg synth {GENERATOR_VERSION}")
     exposure = None
     per_frame = []
     for i, pose in enumerate(poses):
         t0 = time.perf_counter()
-        seed = (cfg.seed * 100003 + i) % 2**32
+        seed = _frame_seed(cfg, i)
         radiance = base.render(pose, cfg.spp, seed)
         if exposure is None:
             exposure = choose_exposure(radiance)
@@ -189,7 +224,7 @@ def generate(cfg: SynthConfig, log: Callable[[str], None] | None = print) -> Pat
                                         "texel nodes at u=(j+0.5)/W, t=i/(H-1), bilinear"},
         "camera": {"path": cfg.camera, "rig": layout.rig.to_json(), "hfov_deg": 60.0, "fps": FPS,
                    "pose": "camera-to-world, OpenCV camera frame (x right, y down, z forward)"},
-        "render": {"integrator": "path", "max_depth": max_depth, "spp": cfg.spp, "seed": cfg.seed,
+        "render": {"integrator": "path", "max_depth": cfg.max_depth, "spp": cfg.spp, "seed": cfg.seed,
                    "reconstruction_filter": "box"},
         "exposure": exposure,
         "exposure_rule": "99.5th percentile of frame 0's per-pixel max channel -> 0.9; images = exposure * radiance",
