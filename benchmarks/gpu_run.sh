@@ -7,6 +7,8 @@
 # usage: bash benchmarks/gpu_run.sh RECORDING OUTDIR STEP...
 #   speed      cuda_check, `photoreg bench speed` at four settings and on the demo (with and without the
 #              traced light), gpu_profile.py, peers.py
+#   render     `photoreg bench speed` with an object inserted (sessions/tum_fr1_rpy.toml, data/demo/session.toml):
+#              the render stage (R_TRV, G-buffer by pyrender on EGL, composite) timed with the rest
 #   renderers  `photoreg bench renderers --device cuda` on RENDER_SCENES (a scene cache made here with
 #              `photoreg bench renderers`, e.g. ~/.cache/photoreg/bench_scenes)
 #   history    TUM stride 4 / 64 rays / 3 bands and the demo with its traced light, with and without the
@@ -60,6 +62,19 @@ for step in "$@"; do
         OPENBLAS_NUM_THREADS=$n python3 -m photoreg bench speed data/demo --device cuda --frames 0:30 --warmup 3 \
           --stride 4 --rays 64 --bands 5 --json "$out/blas${n}_demo_sun.json" 2>/dev/null
       done ;;
+    render)
+      # The full per-frame pipeline with an object inserted (R_TRV, G-buffer, composite timed too, the `render`
+      # stage): the bunny of sessions/tum_fr1_rpy.toml (PHOTOREG_DATA must hold recordings/tum_fr1_rpy and
+      # meshes/bunny_5k.obj) beside the recording without objects, and the demo's session.
+      for cfg in "4 64 3" "1 169 4"; do
+        set -- $cfg
+        python3 -m photoreg bench speed "$rec" --device cuda --frames 0:30 --warmup 3 --stride $1 --rays $2 \
+          --bands $3 --json "$out/render_bare_s$1_r$2_b$3.json" 2>/dev/null
+        python3 -m photoreg bench speed sessions/tum_fr1_rpy.toml --device cuda --frames 0:30 --warmup 3 \
+          --stride $1 --rays $2 --bands $3 --json "$out/render_bunny_s$1_r$2_b$3.json" 2>/dev/null
+      done
+      python3 -m photoreg bench speed data/demo/session.toml --device cuda --frames 0:30 --warmup 3 --stride 4 \
+        --rays 64 --bands 5 --json "$out/render_demo.json" 2>/dev/null ;;
     renderers)
       mkdir -p "$out/renderers"
       python3 -m photoreg bench renderers --device cuda --synth-dir "$RENDER_SCENES" \

@@ -107,7 +107,8 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("bench", help="speed benchmarks: per-stage ms of the full pipeline on one device")
     bsub = p.add_subparsers(dest="bench_kind", required=True)
     b = bsub.add_parser("speed", help="per-stage milliseconds on a recording")
-    b.add_argument("recording")
+    b.add_argument("recording", help="recording folder, or a SESSION.toml: its objects are inserted and the "
+                                     "render stage (R_TRV, G-buffer, composite) is timed too")
     b.add_argument("--device", choices=["auto", "cpu", "cuda"], default=None)
     b.add_argument("--frames", help="frames to use (default 0:12)")
     b.add_argument("--warmup", type=int, default=2, help="leading frames left out of the figures")

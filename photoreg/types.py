@@ -32,6 +32,10 @@ class Intrinsics:
         return Intrinsics(w, h, self.fx * factor, self.fy * factor,
                           (self.cx + 0.5) * factor - 0.5, (self.cy + 0.5) * factor - 0.5, self.depth_scale)
 
+    def cropped(self, x0: int, y0: int, x1: int, y1: int) -> "Intrinsics":
+        """Intrinsics of the sub-image of pixel columns x0..x1-1 and rows y0..y1-1."""
+        return Intrinsics(x1 - x0, y1 - y0, self.fx, self.fy, self.cx - x0, self.cy - y0, self.depth_scale)
+
     def check(self, where: str) -> "Intrinsics":
         """self, or a ValueError naming `where` when the size or focal lengths are not positive."""
         if self.width <= 0 or self.height <= 0 or not (self.fx > 0 and self.fy > 0):

@@ -1,8 +1,10 @@
-"""`photoreg bench sweep` (CSV rows, merge, Pareto front and plot) and the row-split CPU launches
+"""`photoreg bench sweep` (CSV rows, merge, Pareto front and plot), `photoreg bench speed` on a session, and the row-split CPU launches
 (photoreg.kernels.launch) that must give exactly the single launch's output."""
 from __future__ import annotations
 
 import csv
+import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -172,3 +174,19 @@ def test_thread_settings(monkeypatch):
         set_cpu_threads(0)
     with pytest.raises(ValueError, match="threads"):
         launch_rows(_occlusion, (4, 4), [], [], "cpu", threads=0)
+
+
+def test_bench_speed_times_the_render_stage_of_a_session(tmp_path):
+    """`photoreg bench speed` on a session file inserts its objects and times the render stage (R_TRV, G-buffer,
+    composite) with the rest; on the recording alone there is no render stage."""
+    demo = Path(__file__).resolve().parents[1] / "data" / "demo"
+    for src, name in ((demo / "session.toml", "session"), (demo, "recording")):
+        out = tmp_path / f"{name}.json"
+        assert main(["bench", "speed", str(src), "--device", "cpu", "--frames", "0:3", "--warmup", "1",
+                     "--rays", "16", "--json", str(out)]) == 0
+        res = json.loads(out.read_text())
+        if name == "session":
+            assert res["objects"] == 1 and res["shadows"] == "voxel" and res["ms_mean"]["render"] > 0
+        else:
+            assert res["objects"] == 0 and res["shadows"] is None and "render" not in res["ms_mean"]
+        assert res["frames_timed"] == 2 and res["frames_per_s"] > 0

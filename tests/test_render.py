@@ -143,6 +143,34 @@ def test_no_seam_where_the_object_hides_stride_samples(tmp_path):
     assert np.allclose(fixed.ratio[real], exact.ratio[real], atol=1e-3)
 
 
+def test_render_window_holds_the_object_and_its_seam(tmp_path):
+    """The render stage ray casts the real surface only in a window round the objects' projection: it holds
+    every pixel the cube covers plus one lighting stride and a pixel around them, is much smaller than the
+    frame here, and is the whole frame when the objects reach behind the camera."""
+    from photoreg.config import Session
+    from photoreg.render.stage import RenderStage
+
+    s = Session()
+    s.objects = [_cube(tmp_path, scale=0.2)]
+    s.lighting.stride = 4
+    stage = RenderStage(s, INTR, "cpu")
+    x0, y0, x1, y1 = stage.window(LOOK_DOWN)
+    full = stage.gbuffer.render(LOOK_DOWN)
+    v, u = np.nonzero(full.coverage > 0)
+    assert x0 <= u.min() - 5 and u.max() + 5 < x1 and y0 <= v.min() - 5 and v.max() + 5 < y1
+    assert (x1 - x0) * (y1 - y0) < 0.5 * INTR.width * INTR.height
+    real = np.full((INTR.height, INTR.width), 0.9, np.float32)       # a real surface cutting the cube at z = 0.1
+    for depth in (None, real):                                        # the G-buffer of the window is the same
+        a, b = stage.gbuffer.render(LOOK_DOWN, depth), stage.gbuffer.render(LOOK_DOWN, depth, window=(x0, y0, x1, y1))
+        for name in ("coverage", "depth", "position", "normal", "albedo"):
+            assert np.array_equal(getattr(a, name), getattr(b, name)), name
+    with pytest.raises(ValueError, match="window"):
+        stage.gbuffer.render(LOOK_DOWN, window=(0, 0, INTR.width + 1, 4))
+    inside = LOOK_DOWN.copy()
+    inside[2, 3] = 0.1                                                    # the camera within the cube's height
+    assert stage.window(inside) == (0, 0, INTR.width, INTR.height)
+
+
 def test_none_renderer_leaves_real_pixels(tmp_path):
     camera, out, layers, gb = _render_floor(tmp_path, "none")
     real = gb.coverage == 0

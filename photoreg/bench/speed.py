@@ -11,7 +11,7 @@ import sys
 
 import numpy as np
 
-from ..config import Session, parse_frames, validate
+from ..config import Session, load_session, parse_frames, validate
 from ..io.atomic import write_json
 
 
@@ -62,6 +62,7 @@ def bench_recording(session: Session, warmup: int = 2) -> dict:
         "size": f"{rec.intrinsics.width}x{rec.intrinsics.height}", "frames_timed": len(timings),
         "stride": L.stride, "rays": L.rays, "bands": L.bands, "voxel_size": session.reconstruction.voxel_size,
         "ray_length": L.ray_length, "sun": L.sun, "bounce": L.bounce, "history": L.history,
+        "objects": len(session.objects), "shadows": session.render.shadows if session.objects else None,
         "ms_mean": {s: round(float(np.mean([t[s] for t in timings])), 3) for s in stages},
         "ms_p95": {s: round(float(np.percentile([t[s] for t in timings], 95)), 3) for s in stages},
         "ms_median": {s: round(float(np.median([t[s] for t in timings])), 3) for s in stages},
@@ -76,8 +77,11 @@ def speed_command(args) -> int:
 
     if args.threads is not None:
         set_cpu_threads(args.threads)
-    s = Session()
-    s.recording.path = args.recording
+    if args.recording.endswith(".toml"):   # a session: its objects are inserted, the render stage timed too
+        s = load_session(args.recording)
+    else:
+        s = Session()
+        s.recording.path = args.recording
     s.device = args.device or "auto"
     s.frames = args.frames or "0:12"
     s.lighting.stride, s.lighting.rays, s.lighting.bands = args.stride, args.rays, args.bands
@@ -91,9 +95,10 @@ def speed_command(args) -> int:
     validate(s)
     res = bench_recording(s, warmup=args.warmup)
     stages = "  ".join(f"{k} {v:.1f}" for k, v in res["ms_mean"].items())
+    render = f", {res['objects']} object(s) inserted ({res['shadows']})" if res["objects"] else ", no objects"
     print(f"{res['device_name']} ({res['device']}, {res['threads']} CPU threads), {res['size']} stride {res['stride']} rays {res['rays']} "
-          f"bands {res['bands']}, sun {res['sun']}, bounce {res['bounce']}, history {res['history']}: {res['frames_per_s']} frames/s "
-          f"(median frame: {res['frames_per_s_median']})\n  mean ms: {stages}")
+          f"bands {res['bands']}, sun {res['sun']}, bounce {res['bounce']}, history {res['history']}{render}: "
+          f"{res['frames_per_s']} frames/s (median frame: {res['frames_per_s_median']})\n  mean ms: {stages}")
     if args.json_out:
         write_json(args.json_out, res)
     return 0

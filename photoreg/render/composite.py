@@ -48,7 +48,8 @@ class RenderInput:
     light_rays: int = 0             # rays over the dominant light's disc (0: the light stays in F's SH)
     scene: VirtualScene | None = None  # the placed objects (renderers that work per object need it)
     sun: dict | None = None         # the light traced from its shadows (SolveDiagnostics.sun), when found
-    surface: SurfaceMaps | None = None  # real surface at every pixel (stride 1): refine_seam (None: no refinement)
+    surface: SurfaceMaps | None = None  # real surface at every pixel (stride 1) of a window: refine_seam (None: none)
+    surface_origin: tuple[int, int] = (0, 0)  # the window's top-left pixel (x, y) in the frame
 
     @cached_property
     def light(self) -> ParametricLight:
@@ -106,8 +107,9 @@ def at_stride(image: np.ndarray, maps: SurfaceMaps) -> np.ndarray:
 def near_objects(maps: SurfaceMaps, bounds: np.ndarray, reach: float) -> np.ndarray:
     """Stride pixels whose real surface lies within `reach` of the objects' box: the only ones a
     virtual object can shadow (rays end at ray_length)."""
-    gap = np.maximum(np.maximum(bounds[0] - maps.vertex, maps.vertex - bounds[1]), 0.0)
-    return maps.valid & (np.linalg.norm(gap, axis=-1) <= reach)
+    lo, hi = np.asarray(bounds, np.float32)   # float32 like the maps: no float64 copies of a full frame
+    gap = np.maximum(np.maximum(lo - maps.vertex, maps.vertex - hi), 0.0)
+    return maps.valid & (np.einsum("...i,...i->...", gap, gap) <= np.float32(reach) ** 2)
 
 
 def upsample_ratio(ratio_s: np.ndarray, near: np.ndarray, stride: int, shape: tuple[int, int]) -> np.ndarray:
@@ -133,7 +135,8 @@ def refine_seam(ratio: np.ndarray, inp: RenderInput, near: np.ndarray,
     hide (coverage >= VIRTUAL_COVERAGE there): that sample's real surface lies under or behind an object, and
     its ratio, dark there, drew a seam along the object's silhouette (demo frame 20 with the true lighting:
     the pixels just outside the object 10% darker than the path tracer's, composite si-RMSE 0.038 against
-    0.029 for the path-traced object pasted). Needs inp.surface (none: nothing changes)."""
+    0.029 for the path-traced object pasted). Needs inp.surface (none: nothing changes); pixels outside its
+    window keep the interpolated ratio."""
     if inp.surface is None:
         return
     hidden = near & (at_stride(inp.gbuffer.coverage, inp.maps) >= VIRTUAL_COVERAGE)
@@ -141,9 +144,10 @@ def refine_seam(ratio: np.ndarray, inp: RenderInput, near: np.ndarray,
         return
     shown = upsample_ratio(np.where(hidden, 0.0, 1.0)[..., None].astype(np.float32), near, inp.maps.stride,
                            ratio.shape[:2])[..., 0]
-    band = (shown < 1.0) & (inp.gbuffer.coverage < 1.0) & inp.surface.valid
+    (x0, y0), (h, w) = inp.surface_origin, inp.surface.depth.shape
+    band = (shown[y0:y0 + h, x0:x0 + w] < 1.0) & (inp.gbuffer.coverage[y0:y0 + h, x0:x0 + w] < 1.0) & inp.surface.valid
     if band.any():
-        ratio[band] = ratio_at(inp.surface.vertex[band], inp.surface.normal[band])
+        ratio[y0:y0 + h, x0:x0 + w][band] = ratio_at(inp.surface.vertex[band], inp.surface.normal[band])
 
 
 def composite(camera: np.ndarray, layers: Layers) -> np.ndarray:

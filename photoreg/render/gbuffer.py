@@ -78,20 +78,29 @@ class GBufferRenderer:
     def close(self) -> None:
         self.gl.delete()
 
-    def render(self, pose_c2w: np.ndarray, real_depth: np.ndarray | None = None, tolerance: float = 0.005) -> GBuffer:
+    def render(self, pose_c2w: np.ndarray, real_depth: np.ndarray | None = None, tolerance: float = 0.005,
+               window: tuple[int, int, int, int] | None = None) -> GBuffer:
         """G-buffer of the view from pose (4x4 camera-to-world, OpenCV); virtual surfaces farther than
-        real_depth (H, W metres, 0 = unknown) + tolerance are hidden."""
+        real_depth (H, W metres, 0 = unknown) + tolerance are hidden. With `window` (x0, y0, x1, y1; x1, y1
+        exclusive) only that pixel box is read back and resolved (the objects must project inside it; the
+        rest of the G-buffer is empty): the per-subsample work is most of the cost on the CPU."""
         pose = check_pose(pose_c2w, "GBufferRenderer.render")
         H, W, s = self.intr.height, self.intr.width, self.s
+        x0, y0, x1, y1 = (0, 0, W, H) if window is None else window
+        if not (0 <= x0 <= x1 <= W and 0 <= y0 <= y1 <= H):
+            raise ValueError(f"GBufferRenderer.render: window {window} is not a pixel box of the {W}x{H} frame")
+        h, w = y1 - y0, x1 - x0
         self.scene.set_pose(self.cam_node, pose @ OPENCV_TO_OPENGL)
         color, zbuf = self.gl.render(self.scene, flags=self.pr.RenderFlags.FLAT)
+        color, zbuf = color[y0 * s:y1 * s, x0 * s:x1 * s], zbuf[y0 * s:y1 * s, x0 * s:x1 * s]
         code = color[..., :3].astype(np.int64)
         face = (code[..., 0] | (code[..., 1] << 8) | (code[..., 2] << 16)) - 1
         hit = zbuf > 0
         # exact z of each subsample's ray on its face's plane; mismatches are blended (invalid) indices
         v, u = np.nonzero(hit & (face >= 0) & (face < len(self.p0)))
         f = face[v, u]
-        ray_c = np.stack([(u - self.hi.cx) / self.hi.fx, (v - self.hi.cy) / self.hi.fy, np.ones(len(u))], -1)
+        ray_c = np.stack([(u + x0 * s - self.hi.cx) / self.hi.fx, (v + y0 * s - self.hi.cy) / self.hi.fy,
+                          np.ones(len(u))], -1)
         R, t = pose[:3, :3], pose[:3, 3]
         ray_w = ray_c @ R.T
         nf = self.face_normal[f]
@@ -104,14 +113,13 @@ class GBufferRenderer:
             real = np.asarray(real_depth, np.float32)
             if real.shape != (H, W):
                 raise ValueError(f"GBufferRenderer.render: real_depth is {real.shape}, expected {(H, W)}")
-            rd = np.repeat(np.repeat(real, s, 0), s, 1)
+            rd = np.repeat(np.repeat(real[y0:y1, x0:x1], s, 0), s, 1)
             hidden = (rd > 0) & np.isfinite(rd) & (zbuf > rd + tolerance)
             hit &= ~hidden
             keep = ~hidden[v, u]
             v, u, f, z, ray_w, nf, denom = v[keep], u[keep], f[keep], z[keep], ray_w[keep], nf[keep], denom[keep]
-        coverage = hit.reshape(H, s, W, s).mean(axis=(1, 3)).astype(np.float32)
         # one representative subsample per pixel: the last valid one written wins
-        pix = (v // s) * W + (u // s)
+        pix = (v // s + y0) * W + (u // s + x0)
         out_depth = np.zeros(H * W, np.float32)
         out_pos = np.zeros((H * W, 3), np.float32)
         out_n = np.zeros((H * W, 3), np.float32)
@@ -122,6 +130,8 @@ class GBufferRenderer:
         out_alb[pix] = self.face_albedo[f]
         has = np.zeros(H * W, bool)
         has[pix] = True
+        coverage = np.zeros((H, W), np.float32)
+        coverage[y0:y1, x0:x1] = hit.reshape(h, s, w, s).mean(axis=(1, 3))
         coverage = np.where(has.reshape(H, W), coverage, 0.0).astype(np.float32)
         return GBuffer(coverage, out_depth.reshape(H, W), out_pos.reshape(H, W, 3), out_n.reshape(H, W, 3),
                        out_alb.reshape(H, W, 3))

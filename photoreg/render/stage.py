@@ -37,19 +37,41 @@ class RenderStage:
             self._dirs[bands] = make_direction_set(self.session.lighting.rays, bands, seed=0)
         return self._dirs[bands]
 
+    def window(self, pose: np.ndarray) -> tuple[int, int, int, int]:
+        """Pixel box (x0, y0, x1, y1) (x1, y1 exclusive; empty when x1 <= x0 or y1 <= y0) holding the projection
+        of the objects' bounding box, widened by one lighting stride and a pixel (the reach of the seam band,
+        composite.refine_seam); the whole frame when a corner of that box is not in front of the camera."""
+        W, H = self.intrinsics.width, self.intrinsics.height
+        lo, hi = self.scene.bounds
+        corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+        cam = (corners - pose[:3, 3]) @ pose[:3, :3]          # world -> camera (pose is camera-to-world)
+        if not np.all(cam[:, 2] > self.session.reconstruction.depth_min):
+            return 0, 0, W, H
+        uv = cam[:, :2] / cam[:, 2:] @ np.diag([self.intrinsics.fx, self.intrinsics.fy]) + [self.intrinsics.cx,
+                                                                                             self.intrinsics.cy]
+        m = self.session.lighting.stride + 1
+        x0, y0 = np.clip(np.floor(uv.min(axis=0)).astype(int) - m, 0, [W, H])
+        x1, y1 = np.clip(np.ceil(uv.max(axis=0)).astype(int) + m + 1, 0, [W, H])
+        return int(x0), int(y0), int(x1), int(y1)
+
     def __call__(self, camera: np.ndarray, sensor_depth: np.ndarray, grid: DenseGrid, maps: SurfaceMaps,
                  pose: np.ndarray, F: np.ndarray, gain: float = 1.0, sun: dict | None = None) -> np.ndarray:
         """Composite (H, W, 3 linear) of one frame: camera linear image, sensor depth (metres, 0 invalid),
         real grid and its stride maps, pose (camera-to-world), lighting F (3, B*B), exposure gain and the
         traced light (SolveDiagnostics.sun) when the solve found one."""
         rc, lc = self.session.reconstruction, self.session.lighting
-        surface = raycast_surface(grid, self.intrinsics, pose, rc.depth_min, rc.depth_max, stride=1)
-        real_depth = np.where(surface.depth > 0, surface.depth, np.nan_to_num(sensor_depth)).astype(np.float32)
-        gb = self.gbuffer.render(pose, real_depth, tolerance=0.5 * rc.voxel_size)
+        real_depth = np.nan_to_num(sensor_depth).astype(np.float32)
+        x0, y0, x1, y1 = self.window(pose)
+        surface = None
+        if x1 > x0 and y1 > y0:   # the real surface at every pixel of the window: what hides the objects, the seam
+            surface = raycast_surface(grid, self.intrinsics.cropped(x0, y0, x1, y1), pose, rc.depth_min,
+                                      rc.depth_max, stride=1)
+            real_depth[y0:y1, x0:x1] = np.where(surface.depth > 0, surface.depth, real_depth[y0:y1, x0:x1])
+        gb = self.gbuffer.render(pose, real_depth, tolerance=0.5 * rc.voxel_size, window=(x0, y0, x1, y1))
         inp = RenderInput(camera=camera, F=np.asarray(F, np.float64), gain=float(gain), grid=grid,
                           virtual=self.virtual, maps=maps, gbuffer=gb, bounds=self.scene.bounds,
                           directions=self.directions, offset=lc.ray_offset_voxels * rc.voxel_size,
                           ray_length=lc.ray_length, light_rays=self.session.render.light_rays,
-                          scene=self.scene, sun=sun, surface=surface)
+                          scene=self.scene, sun=sun, surface=surface, surface_origin=(x0, y0))
         self.last_input, self.last = inp, self.renderer(inp)
         return composite(camera, self.last)
