@@ -1,5 +1,5 @@
-"""`photoreg bench sweep` (CSV rows, merge, Pareto front and plot), `photoreg bench speed` on a session, and the row-split CPU launches
-(photoreg.kernels.launch) that must give exactly the single launch's output."""
+"""`photoreg bench sweep` (CSV rows, merge, Pareto front and plot), `photoreg bench speed` on a session, and
+the row-split CPU launches (photoreg.kernels.launch) that must give exactly the single launch's output."""
 from __future__ import annotations
 
 import csv

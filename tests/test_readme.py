@@ -62,6 +62,7 @@ COMMANDS: dict[str, tuple[str, dict]] = {
                  "--synth-dir": "gen/bench"}),
     "photoreg bench speed path/to/recording --device cuda --stride 4 --rays 169 --bands 4":
         ("run", {"--device": "cpu", "--rays": "8", "--frames": "0:3", "--warmup": "1"}),
+    "photoreg bench speed sessions/demo.toml --device cpu": ("run", {"--rays": "8", "--frames": "0:3", "--warmup": "1"}),
 }
 DOCKER_VALUE_OPTIONS = {"-v", "--volume", "-p", "--publish", "-e", "--env", "--gpus", "--name", "-f", "-t"}
 
