@@ -9,8 +9,9 @@
 #              traced light), gpu_profile.py, peers.py
 #   render     `photoreg bench speed` with an object inserted (sessions/tum_fr1_rpy.toml, data/demo/session.toml):
 #              the render stage (R_TRV, G-buffer by pyrender on EGL, composite) timed with the rest
-#   renderers  `photoreg bench renderers --device cuda` on RENDER_SCENES (a scene cache made here with
-#              `photoreg bench renderers`, e.g. ~/.cache/photoreg/bench_scenes)
+#   renderers  `photoreg bench renderers --device cuda $RENDER_ARGS` on RENDER_SCENES (a scene cache made here
+#              with `photoreg bench renderers`, e.g. ~/.cache/photoreg/bench_scenes; RENDER_ARGS: its --size,
+#              --frames and --spp)
 #   history    TUM stride 4 / 64 rays / 3 bands and the demo with its traced light, with and without the
 #              history of samples (--no-history)
 #   blas       the solve's BLAS threads (OPENBLAS_NUM_THREADS 1, 4, 16) at stride 4 / 64 rays / 3 bands
@@ -77,7 +78,7 @@ for step in "$@"; do
         --rays 64 --bands 5 --json "$out/render_demo.json" 2>/dev/null ;;
     renderers)
       mkdir -p "$out/renderers"
-      python3 -m photoreg bench renderers --device cuda --synth-dir "$RENDER_SCENES" \
+      python3 -m photoreg bench renderers --device cuda --synth-dir "$RENDER_SCENES" ${RENDER_ARGS:-} \
         --results-dir "$out/renderers" --md "$out/renderers/renderers.md" --plot "$out/renderers/renderers.png" || true
       ls "$out/renderers"/renderers_cuda.json ;;   # the rows; the report is redrawn where matplotlib is
     sweep)

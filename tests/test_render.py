@@ -77,7 +77,22 @@ def test_gbuffer_known_projection_and_real_occlusion(tmp_path):
     real[:, :32] = 1.0                                                           # a real box in front, left half
     gb2 = gb_r.render(np.eye(4), real)
     assert gb2.coverage[:, :31].max() == 0 and gb2.coverage[:, 33:].max() > 0.99
-    gb_r.close()
+
+
+def test_gbuffer_renderers_share_one_offscreen_renderer(tmp_path):
+    """Pipelines of one process share the offscreen renderer of their size (with EGL, deleting one renderer
+    terminated the display of every other: EGL_NOT_INITIALIZED on an H100), and each still sees its own scene
+    when they take turns."""
+    import gc
+
+    small = GBufferRenderer(load_scene([_cube(tmp_path, position=[0.0, 0.0, 2.0], scale=0.2)]), INTR, 2)
+    big = GBufferRenderer(load_scene([_cube(tmp_path, position=[0.0, 0.0, 2.0], scale=0.4)]), INTR, 2)
+    assert small.gl is big.gl
+    areas = [small.render(np.eye(4)).coverage.sum(), big.render(np.eye(4)).coverage.sum()]
+    assert np.isclose(small.render(np.eye(4)).coverage.sum(), areas[0]) and areas[1] > 3.5 * areas[0]
+    del small
+    gc.collect()
+    assert np.isclose(big.render(np.eye(4)).coverage.sum(), areas[1])
 
 
 def test_virtual_visibility_never_exceeds_real(tmp_path):

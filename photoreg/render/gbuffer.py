@@ -11,6 +11,7 @@ from one of those subsamples (exact geometry: the ray meets the face's plane).
 from __future__ import annotations
 
 import os
+import threading
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -46,6 +47,19 @@ def _import_pyrender():
     return pyrender
 
 
+_OFFSCREEN: dict[tuple[int, int], tuple[object, threading.Lock]] = {}
+
+
+def _offscreen(pr, width: int, height: int) -> tuple[object, threading.Lock]:
+    """The process's offscreen renderer of this size and its lock, made once and never deleted: pyrender's EGL
+    platform terminates the display, which every renderer of a process shares, when one renderer is deleted
+    (the next pipeline's first frame then failed with EGL_NOT_INITIALIZED on an H100); the lock keeps pipelines
+    in other threads (the server's connections) off it while one renders."""
+    if (width, height) not in _OFFSCREEN:
+        _OFFSCREEN[(width, height)] = pr.OffscreenRenderer(width, height), threading.Lock()
+    return _OFFSCREEN[(width, height)]
+
+
 class GBufferRenderer:
     """Rasterises one virtual scene for one camera model; keeps its GL context across frames."""
 
@@ -73,10 +87,7 @@ class GBufferRenderer:
         # pyrender's pixel centres sit at +0.5 (OpenGL); OpenCV's at integers
         cam = self.pr.IntrinsicsCamera(self.hi.fx, self.hi.fy, self.hi.cx + 0.5, self.hi.cy + 0.5, Z_NEAR, Z_FAR)
         self.cam_node = self.scene.add(cam, pose=np.eye(4))
-        self.gl = self.pr.OffscreenRenderer(self.hi.width, self.hi.height)
-
-    def close(self) -> None:
-        self.gl.delete()
+        self.gl, self.gl_lock = _offscreen(self.pr, self.hi.width, self.hi.height)
 
     def render(self, pose_c2w: np.ndarray, real_depth: np.ndarray | None = None, tolerance: float = 0.005,
                window: tuple[int, int, int, int] | None = None) -> GBuffer:
@@ -91,7 +102,8 @@ class GBufferRenderer:
             raise ValueError(f"GBufferRenderer.render: window {window} is not a pixel box of the {W}x{H} frame")
         h, w = y1 - y0, x1 - x0
         self.scene.set_pose(self.cam_node, pose @ OPENCV_TO_OPENGL)
-        color, zbuf = self.gl.render(self.scene, flags=self.pr.RenderFlags.FLAT)
+        with self.gl_lock:
+            color, zbuf = self.gl.render(self.scene, flags=self.pr.RenderFlags.FLAT)
         color, zbuf = color[y0 * s:y1 * s, x0 * s:x1 * s], zbuf[y0 * s:y1 * s, x0 * s:x1 * s]
         code = color[..., :3].astype(np.int64)
         face = (code[..., 0] | (code[..., 1] << 8) | (code[..., 2] << 16)) - 1

@@ -157,36 +157,33 @@ def make_views(rng: np.random.Generator, per_scene: int, target_stride: int = TA
     gbr = GBufferRenderer(scene, intr, 2)
     dirs = make_direction_set(RAYS, BANDS, seed=0)
     views = []
-    try:
-        for _ in range(per_scene):
-            lo, hi = scene.bounds
-            target = (lo + hi) / 2 + np.r_[rng.uniform(-0.15, 0.15, 2), 0.0]
-            el, az, dist = math.radians(rng.uniform(20, 70)), rng.uniform(0, 2 * math.pi), rng.uniform(0.5, 1.5)
-            eye = target + dist * np.array([math.cos(el) * math.cos(az), math.cos(el) * math.sin(az), math.sin(el)])
-            pose = look_at(eye, target)
-            F = random_lighting(rng)
-            light = parametric_light(F, sh.dominant_direction(F))   # the voxel renderer's light
-            buf, maps, gb = view_buffers(real, scene, gbr, intr, pose, light)
-            jpose = pose.copy()
-            jpose[:3, :3] = _jitter_rotation(rng, rng.uniform(0, 0.5) / f) @ pose[:3, :3]
-            jlight = copy.copy(light)
-            jlight.direction = _jitter_rotation(rng, math.radians(rng.uniform(0, 0.5))) @ light.direction
-            jbuf = view_buffers(real, scene, gbr, intr, jpose, jlight)[0]
-            nrm = np.where(buf.valid[..., None], buf.normal, 0.0).reshape(-1, 3)
-            opacity = receiver_opacity(light, nrm).reshape(HEIGHT, WIDTH, 3).astype(np.float32)
-            lit = shade(F, sh.unoccluded_transfer(maps.normal.reshape(-1, 3), BANDS)).reshape(HEIGHT, WIDTH, 3)
-            camera = (rng.uniform(0.3, 0.7) * np.maximum(lit, 0.0)).astype(np.float32)   # a grey real surface
-            maps_t = raycast_surface(real, intr, pose, 0.1, 5.0, stride=target_stride)
-            inp = RenderInput(camera, F, 1.0, real, virt, maps_t, gb, scene.bounds, lambda b: dirs, OFFSET, RAY_LENGTH,
-                              light_rays=LIGHT_RAYS, scene=scene)
-            vox, non = render_voxel(inp), render_none(inp)
-            full = gb.coverage >= 1.0
-            tgt = vox.ratio.copy()
-            tgt[full] = np.clip(vox.colour[full] / np.maximum(non.colour[full], 1e-6), 0.0, 1.0)
-            weight = ((maps.valid & (gb.coverage == 0)) | (full & buf.virtual)).astype(np.float32)
-            views.append(View(buf.data, jbuf.data, tgt.astype(np.float32), opacity, weight))
-    finally:
-        gbr.close()
+    for _ in range(per_scene):
+        lo, hi = scene.bounds
+        target = (lo + hi) / 2 + np.r_[rng.uniform(-0.15, 0.15, 2), 0.0]
+        el, az, dist = math.radians(rng.uniform(20, 70)), rng.uniform(0, 2 * math.pi), rng.uniform(0.5, 1.5)
+        eye = target + dist * np.array([math.cos(el) * math.cos(az), math.cos(el) * math.sin(az), math.sin(el)])
+        pose = look_at(eye, target)
+        F = random_lighting(rng)
+        light = parametric_light(F, sh.dominant_direction(F))   # the voxel renderer's light
+        buf, maps, gb = view_buffers(real, scene, gbr, intr, pose, light)
+        jpose = pose.copy()
+        jpose[:3, :3] = _jitter_rotation(rng, rng.uniform(0, 0.5) / f) @ pose[:3, :3]
+        jlight = copy.copy(light)
+        jlight.direction = _jitter_rotation(rng, math.radians(rng.uniform(0, 0.5))) @ light.direction
+        jbuf = view_buffers(real, scene, gbr, intr, jpose, jlight)[0]
+        nrm = np.where(buf.valid[..., None], buf.normal, 0.0).reshape(-1, 3)
+        opacity = receiver_opacity(light, nrm).reshape(HEIGHT, WIDTH, 3).astype(np.float32)
+        lit = shade(F, sh.unoccluded_transfer(maps.normal.reshape(-1, 3), BANDS)).reshape(HEIGHT, WIDTH, 3)
+        camera = (rng.uniform(0.3, 0.7) * np.maximum(lit, 0.0)).astype(np.float32)   # a grey real surface
+        maps_t = raycast_surface(real, intr, pose, 0.1, 5.0, stride=target_stride)
+        inp = RenderInput(camera, F, 1.0, real, virt, maps_t, gb, scene.bounds, lambda b: dirs, OFFSET, RAY_LENGTH,
+                          light_rays=LIGHT_RAYS, scene=scene)
+        vox, non = render_voxel(inp), render_none(inp)
+        full = gb.coverage >= 1.0
+        tgt = vox.ratio.copy()
+        tgt[full] = np.clip(vox.colour[full] / np.maximum(non.colour[full], 1e-6), 0.0, 1.0)
+        weight = ((maps.valid & (gb.coverage == 0)) | (full & buf.virtual)).astype(np.float32)
+        views.append(View(buf.data, jbuf.data, tgt.astype(np.float32), opacity, weight))
     return views
 
 
