@@ -85,8 +85,8 @@ class GBufferRenderer:
         self.scene = self.pr.Scene(bg_color=[0.0, 0.0, 0.0, 0.0], ambient_light=[1.0, 1.0, 1.0])
         self.scene.add(self.pr.Mesh([prim]))
         # pyrender's pixel centres sit at +0.5 (OpenGL); OpenCV's at integers
-        cam = self.pr.IntrinsicsCamera(self.hi.fx, self.hi.fy, self.hi.cx + 0.5, self.hi.cy + 0.5, Z_NEAR, Z_FAR)
-        self.cam_node = self.scene.add(cam, pose=np.eye(4))
+        self.cam = self.pr.IntrinsicsCamera(self.hi.fx, self.hi.fy, self.hi.cx + 0.5, self.hi.cy + 0.5, Z_NEAR, Z_FAR)
+        self.cam_node = self.scene.add(self.cam, pose=np.eye(4))
         self.gl, self.gl_lock = _offscreen(self.pr, self.hi.width, self.hi.height)
 
     def render(self, pose_c2w: np.ndarray, real_depth: np.ndarray | None = None, tolerance: float = 0.005,
@@ -102,9 +102,16 @@ class GBufferRenderer:
             raise ValueError(f"GBufferRenderer.render: window {window} is not a pixel box of the {W}x{H} frame")
         h, w = y1 - y0, x1 - x0
         self.scene.set_pose(self.cam_node, pose @ OPENCV_TO_OPENGL)
+        # With EGL (framebuffer objects) only the window is rasterised and read back; OSMesa would make a new
+        # context for every new viewport size, so there the whole frame is, and the window cut out of it.
+        sub = os.environ.get("PYOPENGL_PLATFORM") == "egl" and h > 0 and w > 0
+        vx, vy = (x0 * s, y0 * s) if sub else (0, 0)
         with self.gl_lock:
+            self.gl.viewport_width, self.gl.viewport_height = (w * s, h * s) if sub else (W * s, H * s)
+            self.cam.cx, self.cam.cy = self.hi.cx + 0.5 - vx, self.hi.cy + 0.5 - vy
             color, zbuf = self.gl.render(self.scene, flags=self.pr.RenderFlags.FLAT)
-        color, zbuf = color[y0 * s:y1 * s, x0 * s:x1 * s], zbuf[y0 * s:y1 * s, x0 * s:x1 * s]
+        if not sub:
+            color, zbuf = color[y0 * s:y1 * s, x0 * s:x1 * s], zbuf[y0 * s:y1 * s, x0 * s:x1 * s]
         code = color[..., :3].astype(np.int64)
         face = (code[..., 0] | (code[..., 1] << 8) | (code[..., 2] << 16)) - 1
         hit = zbuf > 0
