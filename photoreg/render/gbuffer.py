@@ -47,16 +47,19 @@ def _import_pyrender():
     return pyrender
 
 
-_OFFSCREEN: dict[tuple[int, int], tuple[object, threading.Lock]] = {}
+_OFFSCREEN: dict[tuple[int, int], tuple[object, threading.Lock, bool]] = {}
 
 
-def _offscreen(pr, width: int, height: int) -> tuple[object, threading.Lock]:
-    """The process's offscreen renderer of this size and its lock, made once and never deleted: pyrender's EGL
-    platform terminates the display, which every renderer of a process shares, when one renderer is deleted
-    (the next pipeline's first frame then failed with EGL_NOT_INITIALIZED on an H100); the lock keeps pipelines
-    in other threads (the server's connections) off it while one renders."""
+def _offscreen(pr, width: int, height: int) -> tuple[object, threading.Lock, bool]:
+    """The process's offscreen renderer of this size, its lock, and whether it may change its viewport, made once
+    and never deleted: pyrender's EGL platform terminates the display, which every renderer of a process shares,
+    when one renderer is deleted (the next pipeline's first frame then failed with EGL_NOT_INITIALIZED on an
+    H100); the lock keeps pipelines in other threads (the server's connections) off it while one renders. EGL
+    renders into framebuffer objects of any size; OSMesa would make a new context for every new viewport size
+    (pyrender picks the platform from PYOPENGL_PLATFORM when the renderer is made)."""
     if (width, height) not in _OFFSCREEN:
-        _OFFSCREEN[(width, height)] = pr.OffscreenRenderer(width, height), threading.Lock()
+        _OFFSCREEN[(width, height)] = (pr.OffscreenRenderer(width, height), threading.Lock(),
+                                       os.environ.get("PYOPENGL_PLATFORM") == "egl")
     return _OFFSCREEN[(width, height)]
 
 
@@ -87,7 +90,7 @@ class GBufferRenderer:
         # pyrender's pixel centres sit at +0.5 (OpenGL); OpenCV's at integers
         self.cam = self.pr.IntrinsicsCamera(self.hi.fx, self.hi.fy, self.hi.cx + 0.5, self.hi.cy + 0.5, Z_NEAR, Z_FAR)
         self.cam_node = self.scene.add(self.cam, pose=np.eye(4))
-        self.gl, self.gl_lock = _offscreen(self.pr, self.hi.width, self.hi.height)
+        self.gl, self.gl_lock, self.gl_windows = _offscreen(self.pr, self.hi.width, self.hi.height)
 
     def render(self, pose_c2w: np.ndarray, real_depth: np.ndarray | None = None, tolerance: float = 0.005,
                window: tuple[int, int, int, int] | None = None) -> GBuffer:
@@ -102,9 +105,8 @@ class GBufferRenderer:
             raise ValueError(f"GBufferRenderer.render: window {window} is not a pixel box of the {W}x{H} frame")
         h, w = y1 - y0, x1 - x0
         self.scene.set_pose(self.cam_node, pose @ OPENCV_TO_OPENGL)
-        # With EGL (framebuffer objects) only the window is rasterised and read back; OSMesa would make a new
-        # context for every new viewport size, so there the whole frame is, and the window cut out of it.
-        sub = os.environ.get("PYOPENGL_PLATFORM") == "egl" and h > 0 and w > 0
+        # With EGL only the window is rasterised and read back; with OSMesa the whole frame, the window cut out
+        sub = self.gl_windows and h > 0 and w > 0
         vx, vy = (x0 * s, y0 * s) if sub else (0, 0)
         with self.gl_lock:
             self.gl.viewport_width, self.gl.viewport_height = (w * s, h * s) if sub else (W * s, H * s)
