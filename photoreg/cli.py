@@ -33,6 +33,8 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--ray-length", type=float, help="visibility ray length in metres")
     p.add_argument("--no-poses", action="store_true", help="ignore recorded poses and track the camera")
     p.add_argument("--shadows", choices=SHADOW_RENDERERS, help="shadow renderer (overrides [render] shadows)")
+    p.add_argument("--video", action="store_true", help="also composite.mp4: the composites as a video "
+                                                          "(sessions with [[objects]])")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
 
 

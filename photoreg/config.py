@@ -117,6 +117,7 @@ class RenderConfig:
 class OutputConfig:
     dir: str = "out"
     pictures_every: int = 10      # write lat-long and lit-sphere pictures every k-th frame (0 = never)
+    video: bool = False           # also composite.mp4, the composites as a video (needs [[objects]])
 
 
 @dataclass
@@ -265,6 +266,7 @@ def validate(s: Session) -> None:
                "lighting.process_noise must be >= 0 and lighting.change_threshold > 0"),
               (0 < L.new_view_share <= 1, "lighting.new_view_share must be in (0, 1]"),
               (s.render.light_rays >= 0, "render.light_rays must be >= 0"),
+              (not s.output.video or bool(s.objects), "output.video needs [[objects]]: the video shows the composites"),
               (R.voxel_size > 0, "reconstruction.voxel_size must be > 0"),
               (0 < R.depth_min < R.depth_max, "reconstruction.depth_min must be > 0 and < depth_max")]
     for ok, msg in checks:

@@ -13,6 +13,7 @@ import numpy as np
 from .config import Session, load_session, parse_frames, validate
 from .io.atomic import write_json
 from .io.images import linear_to_srgb, write_exr, write_png_rgb
+from .io.video import VideoOut, frame_rate
 from .lighting.visualize import latlong, lit_sphere, tonemap
 from .types import FrameResult
 
@@ -38,6 +39,8 @@ def session_from_args(args) -> Session:
         s.device = args.device
     if args.no_poses:
         s.recording.use_poses = False
+    if args.video:
+        s.output.video = True
     for opt, section, key in (("stride", "lighting", "stride"), ("rays", "lighting", "rays"),
                               ("bands", "lighting", "bands"), ("ray_length", "lighting", "ray_length"),
                               ("voxel_size", "reconstruction", "voxel_size"), ("shadows", "render", "shadows")):
@@ -116,6 +119,8 @@ def run_session(s: Session, quiet: bool = False, on_frame: Callable[[int, int], 
     skipped: list[dict] = []
     results: list[FrameResult] = []
     progress = Progress(len(indices), quiet)
+    video = (VideoOut(out / "composite.mp4", rec.intrinsics.width, rec.intrinsics.height,
+                      frame_rate(rec.timestamps[indices])) if s.output.video else None)
     partial = out / "lighting.jsonl.partial"
     t0 = time.perf_counter()
     with open(partial, "w") as f:
@@ -129,11 +134,15 @@ def run_session(s: Session, quiet: bool = False, on_frame: Callable[[int, int], 
                 write_pictures(out, r, frame.pose)
             if r.composite is not None:
                 write_composite(out, r, pipe.render.last.ratio)
+                if video is not None:
+                    video.write(r.composite)
             progress.step(f"frame {frame.index}" + (" (weak)" if r.diagnostics.weak else ""))
             if on_frame is not None:
                 on_frame(len(results), len(indices))
     progress.close()
     os.replace(partial, out / "lighting.jsonl")
+    if video is not None:
+        video.close()
     wall = time.perf_counter() - t0
     for sk in skipped:
         print(f"photoreg: skipped frame {sk['frame']}: {sk['error']}", file=sys.stderr)
@@ -144,6 +153,8 @@ def run_session(s: Session, quiet: bool = False, on_frame: Callable[[int, int], 
         "frames_per_s": round(len(results) / wall, 3) if wall > 0 else None,
         "weak_frames": [r.index for r in results if r.diagnostics.weak],
         "objects": len(s.objects), "shadows": s.render.shadows if s.objects else None,
+        "video": None if video is None else {"file": video.path.name, "frames": video.frames,
+                                             "fps": round(frame_rate(rec.timestamps[indices]), 3)},
         "timings_ms_mean": {k: round(float(np.mean([r.timings_ms.get(k, 0.0) for r in results])), 3) for k in stages},
         "settings": {"lighting": vars(s.lighting), "reconstruction": vars(s.reconstruction),
                      "use_poses": s.recording.use_poses},
@@ -170,7 +181,8 @@ def print_summary(summary: dict, out: str) -> None:
           f"{len(summary['weak_frames'])} weak, {len(summary['frames_skipped'])} skipped")
     print(f"mean ms per stage: {stages}  (total {t.get('total', 0):.1f})")
     print(f"outputs in {out}: lighting.jsonl, summary.json, envmap/, sphere/"
-          + (", composite/, composite_linear/, lightmap/" if summary.get("objects") else ""))
+          + (", composite/, composite_linear/, lightmap/" if summary.get("objects") else "")
+          + (", composite.mp4" if summary.get("video") else ""))
 
 
 def run_command(args) -> int:

@@ -223,15 +223,36 @@ def test_none_renderer_leaves_real_pixels(tmp_path):
 
 @pytest.fixture(scope="module")
 def demo_run(tmp_path_factory):
-    """The demo session over frames 0-20 (insert frames 10 and 20 composited; every frame, as a run would)."""
+    """The demo session over frames 0-20 (insert frames 10 and 20 composited; every frame, as a run would),
+    with the video of its composites."""
     from photoreg.config import load_session
     from photoreg.runner import run_session
 
     out = tmp_path_factory.mktemp("demo_run")
     s = load_session(REPO / "data" / "demo" / "session.toml")
-    s.output.dir, s.frames, s.output.pictures_every = str(out), "0:21", 0
+    s.output.dir, s.frames, s.output.pictures_every, s.output.video = str(out), "0:21", 0, True
     run_session(s, quiet=True)
     return out
+
+
+def test_demo_video_holds_every_composite(demo_run):
+    """composite.mp4 has one frame per composite, at the recording's 30 frames/s, and its frame 20 is
+    composite/000020.png up to the codec's loss."""
+    import json
+
+    summary = json.loads((demo_run / "summary.json").read_text())
+    assert summary["video"] == {"file": "composite.mp4", "frames": 21, "fps": 30.0}
+    cap = cv2.VideoCapture(str(demo_run / "composite.mp4"))
+    frames = []
+    while True:
+        ok, frame = cap.read()
+        if not ok:
+            break
+        frames.append(frame)
+    assert len(frames) == 21 and cap.get(cv2.CAP_PROP_FPS) == pytest.approx(30.0)
+    png = cv2.imread(str(demo_run / "composite" / "000020.png"))
+    assert frames[20].shape == png.shape and np.abs(frames[20].astype(int) - png).mean() < 4
+    assert not list(demo_run.glob("*.partial*"))
 
 
 def test_demo_object_brightness_matches_path_tracer(demo_run):
