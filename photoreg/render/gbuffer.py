@@ -6,7 +6,9 @@ face indices as flat colours (pyrender resolves its 4x MSAA into the colour buff
 at an edge is caught by checking it against the depth buffer: the face's plane must give the same z).
 Each subsample is depth-tested against the real surface (real objects occlude virtual ones); the
 pixel's coverage is the share of its subsamples that show a virtual face, and its attributes come
-from one of those subsamples (exact geometry: the ray meets the face's plane).
+from one of those subsamples (exact geometry: the ray meets the face's plane). The render stage asks only
+for the window round the objects' projection (RenderStage.window). One offscreen renderer per size serves
+every G-buffer renderer of the process (_offscreen).
 """
 from __future__ import annotations
 
