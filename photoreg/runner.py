@@ -119,8 +119,8 @@ def run_session(s: Session, quiet: bool = False, on_frame: Callable[[int, int], 
     skipped: list[dict] = []
     results: list[FrameResult] = []
     progress = Progress(len(indices), quiet)
-    video = (VideoOut(out / "composite.mp4", rec.intrinsics.width, rec.intrinsics.height,
-                      frame_rate(rec.timestamps[indices])) if s.output.video else None)
+    fps = frame_rate(rec.timestamps[indices])
+    video = VideoOut(out / "composite.mp4", rec.intrinsics.width, rec.intrinsics.height, fps) if s.output.video else None
     partial = out / "lighting.jsonl.partial"
     t0 = time.perf_counter()
     with open(partial, "w") as f:
@@ -153,8 +153,7 @@ def run_session(s: Session, quiet: bool = False, on_frame: Callable[[int, int], 
         "frames_per_s": round(len(results) / wall, 3) if wall > 0 else None,
         "weak_frames": [r.index for r in results if r.diagnostics.weak],
         "objects": len(s.objects), "shadows": s.render.shadows if s.objects else None,
-        "video": None if video is None else {"file": video.path.name, "frames": video.frames,
-                                             "fps": round(frame_rate(rec.timestamps[indices]), 3)},
+        "video": None if video is None else {"file": video.path.name, "frames": video.frames, "fps": round(fps, 3)},
         "timings_ms_mean": {k: round(float(np.mean([r.timings_ms.get(k, 0.0) for r in results])), 3) for k in stages},
         "settings": {"lighting": vars(s.lighting), "reconstruction": vars(s.reconstruction),
                      "use_poses": s.recording.use_poses},
