@@ -121,7 +121,8 @@ def _render_floor(tmp_path, shadows: str, stride: int = 2, surface: bool = False
     camera = np.ones((48, 64, 1), np.float32) * (0.5 * shade(F, sh.unoccluded_transfer(np.array([[0, 0, 1.0]]), 3)))
     camera = camera.astype(np.float32)                                # a floor of albedo 0.5 under F
     inp = RenderInput(camera, F, 1.0, floor, virt, maps, gb, scene.bounds,
-                      lambda b: make_direction_set(32, b, seed=0), 0.03, 0.3, surface=full if surface else None)
+                      lambda b: make_direction_set(32, b, seed=0), 0.03, 0.3, scene=scene,
+                      surface=full if surface else None)
     layers = get_renderer(shadows)(inp)
     return camera, composite(camera, layers), layers, gb
 
@@ -140,13 +141,14 @@ def test_shadow_darkens_floor_and_far_pixels_unchanged(tmp_path):
     assert out[top].min() > 0                                       # lit top face
 
 
-def test_no_seam_where_the_object_hides_stride_samples(tmp_path):
+@pytest.mark.parametrize("shadows", ["voxel", "shadowmap"])
+def test_no_seam_where_the_object_hides_stride_samples(tmp_path, shadows):
     """Stride samples under the cube are fully shadowed; interpolated into the floor pixels beside it they drew
     a dark seam along its silhouette. With the full-resolution surface those pixels get the ratio a stride-1
     run gives them (composite.refine_seam); without it, they are darker."""
-    _, _, exact, gb = _render_floor(tmp_path, "voxel", stride=1)
-    _, _, seam, _ = _render_floor(tmp_path, "voxel", stride=4)
-    _, _, fixed, _ = _render_floor(tmp_path, "voxel", stride=4, surface=True)
+    _, _, exact, gb = _render_floor(tmp_path, shadows, stride=1)
+    _, _, seam, _ = _render_floor(tmp_path, shadows, stride=4)
+    _, _, fixed, _ = _render_floor(tmp_path, shadows, stride=4, surface=True)
     ring = (cv2.dilate((gb.coverage > 0).astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
             & (gb.coverage == 0))
     assert ring.sum() > 20

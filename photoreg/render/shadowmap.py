@@ -18,12 +18,13 @@ from __future__ import annotations
 import math
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from photoreg.kernels.shadowmap import ShadowMap, depth_map, real_light_visibility, shadow_lookup
 from photoreg.lighting import albedo as alb
 from photoreg.lighting.solver import SolverConfig
 from photoreg.lighting.parametric import ParametricLight, light_basis, receiver_opacity
-from photoreg.render.composite import Layers, RenderInput, at_stride, upsample_ratio
+from photoreg.render.composite import Layers, RenderInput, at_stride, refine_seam, upsample_ratio
 
 RESOLUTION = 512        # shadow-map texels per side
 PAD_TEXELS = 2          # empty border around the objects' footprint
@@ -130,11 +131,21 @@ def render_shadowmap(inp: RenderInput) -> Layers:
     strength[valid], measured = measured_opacity(at_stride(inp.camera, maps)[valid], maps.normal[valid], light, all_vis[valid])
     notes += measured
     sel = valid & in_footprint(smap, maps.vertex, RESOLUTION, MAX_RADIUS)
-    pts, nrm = maps.vertex[sel], maps.normal[sel]
-    shadow, _ = shadow_lookup(smap, pts, nrm, tan_a, 0.0, max_radius=MAX_RADIUS)
+
+    def ratio_of(pts: np.ndarray, nrm: np.ndarray, strength_pts: np.ndarray, vis: np.ndarray) -> np.ndarray:
+        return protected_ratio(shadow_lookup(smap, pts, nrm, tan_a, 0.0, max_radius=MAX_RADIUS)[0], strength_pts, vis)
+
+    def ratio_at(pts: np.ndarray, nrm: np.ndarray) -> np.ndarray:
+        """At new points (the seam): the shadow strength of the nearest stride sample (its material's)."""
+        nearest = cKDTree(maps.vertex[valid]).query(pts)[1]
+        return ratio_of(pts, nrm, strength[valid][nearest],
+                        real_light_visibility(inp.grid, pts, nrm, smap.d, smap.u, smap.v, tan_a, inp.offset,
+                                              inp.ray_length, samples=REAL_SAMPLES))
+
     ratio_s = np.ones(maps.vertex.shape, np.float32)
-    ratio_s[sel] = protected_ratio(shadow, strength[sel], all_vis[sel])
+    ratio_s[sel] = ratio_of(maps.vertex[sel], maps.normal[sel], strength[sel], all_vis[sel])
     ratio = upsample_ratio(ratio_s, sel, maps.stride, inp.camera.shape[:2])
+    refine_seam(ratio, inp, sel, ratio_at)
 
     vpts, vnrm = gb.position[covered], gb.normal[covered]
     self_shadow, _ = shadow_lookup(smap, vpts, vnrm, tan_a, SELF_OFFSET_TEXELS * smap.texel, max_radius=MAX_RADIUS)
