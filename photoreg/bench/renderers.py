@@ -17,6 +17,7 @@ ms per frame against si-RMSE) is rebuilt from every such file, so CPU and GPU ru
 """
 from __future__ import annotations
 
+import importlib.util
 import json
 import math
 import sys
@@ -87,11 +88,11 @@ def bench_scene(kind: str, orbit: Path, static: Path, device: str, renderers: di
     again with other seeds (the noise floor: no renderer shares the ground truth's own Monte Carlo noise)."""
     from ..io.images import read_rgb, srgb_to_linear
     from ..synth.generate import rerender_inserts
-    from .score import color_files, insert_truth, load_gt, true_light
+    from .score import color_files, insert_truth, true_light
 
     truths = insert_truth(orbit)
-    light = true_light(orbit, sh.bands_of(load_gt(orbit).shape[1]))
-    runs = run_all_renderers(_session_for(orbit, orbit, device), list(range(truths[-1].frame + 1)), renderers, light)
+    runs = run_all_renderers(_session_for(orbit, orbit, device), list(range(truths[-1].frame + 1)), renderers,
+                             true_light(orbit))
     cams = [srgb_to_linear(read_rgb(p)) for p in color_files(static)]
     still = run_all_renderers(_session_for(static, orbit, device), list(range(len(cams))), renderers)
     region = metrics.changed_region([c for r in still.values() for c, _ in r.values()],
@@ -113,11 +114,11 @@ def bench_scene(kind: str, orbit: Path, static: Path, device: str, renderers: di
                         metrics.image_flicker([still[name][i][0] for i in sorted(still[name])], region)))
     rows.append(row("baseline: path-traced object, no shadow", [t.baseline() for t in truths], None,
                     metrics.image_flicker(cams, region)))
-    try:
-        again = rerender_inserts(orbit)
-    except RuntimeError as e:   # no Mitsuba here (cached scenes on a GPU machine): the row needs the path tracer
-        print(f"bench renderers: {kind}: no row 'baseline, object path-traced with other seeds' ({e})", file=sys.stderr)
+    if importlib.util.find_spec("mitsuba") is None:   # cached scenes on a machine without the path tracer
+        print(f"bench renderers: {kind}: no row 'baseline, object path-traced with other seeds' (it needs "
+              "Mitsuba 3: pip install 'photoreg[synth]')", file=sys.stderr)
         return rows
+    again = rerender_inserts(orbit)
     rows.append(row("baseline, object path-traced with other seeds", [metrics.composite_metrics(
         metrics.no_shadow_baseline(t.camera, again[t.frame], t.mask), t.gt, t.roi) for t in truths], None, None))
     return rows

@@ -69,16 +69,16 @@ def load_gt(recording: str | Path) -> np.ndarray:
     return gt
 
 
-def true_light(recording: str | Path, bands: int) -> tuple[np.ndarray, dict | None]:
+def true_light(recording: str | Path) -> tuple[np.ndarray, dict | None]:
     """The generator's light in the units of a RenderInput (gain 1): exposure times the environment's SH
-    (lighting_gt.json) to `bands`, and its brightest sun disc as SolveDiagnostics.sun has a traced light
+    (lighting_gt.json, all its bands), and its brightest sun disc as SolveDiagnostics.sun has a traced light
     (world direction, radius in radians, irradiance per channel; None for an HDR map without suns). With it a
     renderer is scored without the lighting estimate's error (photoreg bench renderers)."""
     from ..synth.environment import Sun
 
     recording = Path(recording)
     gt = json.loads((recording / "lighting_gt.json").read_text())
-    F = float(gt["exposure"]) * sh.truncate(load_gt(recording), bands)
+    F = float(gt["exposure"]) * load_gt(recording)
     sky = json.loads((recording / "scene.json").read_text())["lighting"]
     suns = [Sun(**{**s, "colour": tuple(s["colour"])}) for s in sky.get("suns", [])]
     if not suns:
