@@ -140,6 +140,9 @@ def test_dense_export_matches_voxel_block_grid_and_grows():
     vol.integrate(depth, None, K160, second)
     g2 = vol.dense_grid()
     assert g2.origin[0] < g1.origin[0] and g2.shape[0] > g1.shape[0]
+    # only the side that fell short grows, and by a share of the extent, so a turning camera regrows it rarely
+    assert g2.shape[0] - g1.shape[0] >= cfg.grid_growth * g1.shape[0]
+    assert g2.origin[0] + (g2.shape[0] - 1) * VOXEL == pytest.approx(g1.origin[0] + (g1.shape[0] - 1) * VOXEL)
 
     coords, tsdf, weight, *_ = vbg_voxels(vol)
     expected = np.where(weight >= cfg.min_weight, tsdf * cfg.trunc, cfg.trunc)

@@ -12,7 +12,7 @@ import trimesh
 
 from photoreg.config import ObjectConfig
 from photoreg.kernels.raycast import raycast_surface
-from photoreg.kernels.transfer import make_direction_set, radiance_transfer
+from photoreg.kernels.transfer import VIRTUAL, any_blocked, make_direction_set, radiance_transfer
 from photoreg.lighting import sh
 from photoreg.render.composite import RenderInput, composite, shade
 from photoreg.render.gbuffer import GBufferRenderer
@@ -108,6 +108,23 @@ def test_virtual_visibility_never_exceeds_real(tmp_path):
     assert np.allclose(tr.transfer[:, 0], tr.transfer[0, 0])                       # open floor: same R_TR
 
 
+def test_any_blocked_is_the_virtual_flags_of_the_ray_pass(tmp_path):
+    """The pre-pass that spares the real march at points the objects cannot shadow finds exactly the points
+    with a VIRTUAL-flagged ray in the full pass, and R_TRV = R_TR at every other point."""
+    scene = load_scene([_cube(tmp_path, scale=0.2)])
+    virt, floor = voxel_grid(scene, 0.02, "cpu"), _floor_grid()
+    dirs, Y = make_direction_set(32, 3, seed=1)
+    xy = np.stack(np.meshgrid(np.linspace(-0.6, 0.6, 13), np.linspace(-0.6, 0.6, 13)), -1).reshape(-1, 2)
+    pts, up = np.c_[xy, np.zeros(len(xy))], np.tile([0, 0, 1.0], (len(xy), 1))
+    tr = radiance_transfer(floor, pts, up, dirs, Y, 0.03, 0.3, virtual=virt)
+    flagged = ((tr.occlusion_wp.numpy() & int(VIRTUAL)) != 0).any(axis=1)
+    hit = any_blocked(virt, pts, up, dirs, 0.03, 0.3)
+    assert np.array_equal(hit, flagged) and 0 < hit.sum() < len(hit)
+    assert np.array_equal(tr.transfer_rv[~hit], tr.transfer[~hit])
+    east = xy[:, 0] > 0.15                                              # facing away from the cube: no hit
+    assert not any_blocked(virt, pts[east], np.tile([1.0, 0, 0], (east.sum(), 1)), dirs, 0.03, 0.3).any()
+
+
 def _render_floor(tmp_path, shadows: str, stride: int = 2, surface: bool = False):
     """A cube on the real floor seen from above, lit from above: (camera, composite, layers, gbuffer); with
     `surface` the full-resolution real surface goes in too (composite.refine_seam)."""
@@ -139,6 +156,25 @@ def test_shadow_darkens_floor_and_far_pixels_unchanged(tmp_path):
     assert np.all(out[real] <= camera[real] + 1e-6)              # the object only takes light away
     top = gb.coverage == 1
     assert out[top].min() > 0                                       # lit top face
+
+
+def test_voxel_marches_the_real_grid_only_where_the_objects_block_a_ray(tmp_path, monkeypatch):
+    """render_voxel's shadow ratio with the virtual pre-pass (any_blocked) equals the full pass at every point,
+    and the real grid is marched at fewer points than the near ones."""
+    import photoreg.render.voxel as voxel
+
+    marched = []
+    real_transfer = voxel.radiance_transfer
+    monkeypatch.setattr(voxel, "radiance_transfer", lambda g, p, *a, **k: marched.append(len(p)) or
+                        real_transfer(g, p, *a, **k))
+    _, fast_out, fast, _ = _render_floor(tmp_path, "voxel", surface=True)
+    fast_marched = list(marched)
+    monkeypatch.setattr(voxel, "any_blocked", lambda g, p, *a, **k: np.ones(len(p), bool))
+    marched.clear()
+    _, full_out, full, _ = _render_floor(tmp_path, "voxel", surface=True)
+    assert np.array_equal(fast.ratio, full.ratio) and np.array_equal(fast_out, full_out)
+    assert (full.ratio < 1).any()
+    assert sum(fast_marched) < sum(marched) - 50                # calls: the object, the near samples, the seam
 
 
 @pytest.mark.parametrize("shadows", ["voxel", "shadowmap"])

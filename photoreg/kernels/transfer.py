@@ -119,6 +119,22 @@ def _project(normals: wp.array(dtype=wp.vec3), dirs: wp.array(dtype=wp.vec3), yt
         visible[i] = frac
 
 
+@wp.kernel
+def _any_blocked(sdf: wp.array3d(dtype=wp.float32), empty: wp.array3d(dtype=wp.uint8), cell: int, origin: wp.vec3,
+                 voxel: float, trunc: float, points: wp.array(dtype=wp.vec3), normals: wp.array(dtype=wp.vec3),
+                 dirs: wp.array(dtype=wp.vec3), offset: float, ray_length: float, min_step: float, row0: int,
+                 hit: wp.array(dtype=wp.uint8)):
+    i = row0 + wp.tid()
+    n = normals[i]
+    o = points[i] + n * offset
+    for d in range(dirs.shape[0]):
+        w = dirs[d]
+        if wp.dot(n, w) > 0.0:
+            if ray_blocked(sdf, empty, cell, origin, voxel, trunc, o, w, ray_length, min_step):
+                hit[i] = wp.uint8(1)
+                break
+
+
 def _as_warp(a, dtype, device: str, what: str, inner: int | None):
     """A 1-D vec3 (inner=3) or 2-D float (inner=None) Warp array on `device` from numpy or Warp input."""
     if isinstance(a, wp.array):
@@ -182,6 +198,21 @@ def visibility(grid: DenseGrid, points, normals, dirs, offset: float, ray_length
     device, p, n, w = _checked_rays(grid, points, normals, dirs, offset, ray_length, device, min_step_voxels, None)
     occ = _occlusion_pass(grid, p, n, w, offset, ray_length, device, min_step_voxels, None, threads).numpy()
     return (n.numpy() @ w.numpy().T > 0) & (occ == 0)
+
+
+def any_blocked(grid: DenseGrid, points, normals, dirs, offset: float, ray_length: float, device: str | None = None,
+                min_step_voxels: float = 0.5, threads: int | None = None) -> np.ndarray:
+    """(N,) bool: some ray of `dirs` in the normal's hemisphere from points[i] + normals[i] * offset is blocked
+    by `grid` within ray_length; the same march as the occlusion pass, stopping at a point's first hit. With
+    the virtual objects' grid: the points whose R_TRV can differ from R_TR (their VIRTUAL flags)."""
+    device, p, n, w = _checked_rays(grid, points, normals, dirs, offset, ray_length, device, min_step_voxels, None)
+    hit = wp.zeros(p.shape[0], dtype=wp.uint8, device=device)
+    launch_rows(_any_blocked, hit.shape, device=device, threads=threads,
+                inputs=[grid.sdf, grid.empty, int(grid.cell), wp.vec3(*grid.origin), float(grid.voxel_size),
+                        float(grid.trunc), p, n, w, float(offset), float(ray_length),
+                        float(min_step_voxels * grid.voxel_size)],
+                outputs=[hit])
+    return hit.numpy().astype(bool)
 
 
 def radiance_transfer(grid: DenseGrid, points, normals, dirs, ytable, offset: float, ray_length: float,

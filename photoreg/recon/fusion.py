@@ -38,6 +38,9 @@ class FusionConfig:
     depth_max: float = 4.0             # depth beyond this is ignored
     min_weight: float = 1.0            # voxels with less integrated weight count as unobserved
     grid_margin_blocks: int = 1        # extra blocks around the touched region when the brick (re)grows
+    # A side the brick must grow on grows by at least this share of the brick's extent on that axis, so a
+    # turning camera regrows it a few times, not every few frames (each growth copies the whole brick).
+    grid_growth: float = 0.25
     max_dense_voxels: int = 1 << 27    # dense brick limit (512 MB of float32)
 
     def __post_init__(self):
@@ -45,8 +48,8 @@ class FusionConfig:
             raise ValueError("voxel_size, trunc_voxels and block_resolution must be positive")
         if not 0 <= self.depth_min < self.depth_max:
             raise ValueError(f"need 0 <= depth_min < depth_max, got {self.depth_min}, {self.depth_max}")
-        if self.grid_margin_blocks < 0 or self.max_dense_voxels <= 0:
-            raise ValueError("grid_margin_blocks must be >= 0 and max_dense_voxels > 0")
+        if self.grid_margin_blocks < 0 or self.max_dense_voxels <= 0 or not self.grid_growth >= 0:
+            raise ValueError("grid_margin_blocks and grid_growth must be >= 0 and max_dense_voxels > 0")
 
     @property
     def trunc(self) -> float:
@@ -170,17 +173,21 @@ class TSDFVolume:
         return a if str(a.device) == str(wp.get_device(self.device)) else a.to(self.device)
 
     def _ensure_covers(self, lo: np.ndarray, hi: np.ndarray) -> None:
-        """Allocate or grow the brick so that it covers blocks [lo, hi] (inclusive)."""
-        R = self.cfg.block_resolution
+        """Allocate or grow the brick so that it covers blocks [lo, hi] (inclusive): a new brick with
+        grid_margin_blocks round them; a grown one extends only the sides that fall short, each by the
+        blocks it lacks plus max(grid_margin_blocks, grid_growth * its extent)."""
+        R, m = self.cfg.block_resolution, self.cfg.grid_margin_blocks
         if self._sdf is not None:
             cur_lo, cur_hi = self._lo_block, self._lo_block + self._dims_blocks - 1
             if np.all(lo >= cur_lo) and np.all(hi <= cur_hi):
                 return
+            slack = np.maximum(m, np.ceil(self.cfg.grid_growth * self._dims_blocks)).astype(np.int64)
             lo, hi = np.minimum(lo, cur_lo), np.maximum(hi, cur_hi)
-        m = self.cfg.grid_margin_blocks
-        new_lo, new_hi = lo - m, hi + m
+            new_lo, new_hi = np.where(lo < cur_lo, lo - slack, lo), np.where(hi > cur_hi, hi + slack, hi)
+        else:
+            new_lo, new_hi = lo - m, hi + m
         if np.prod((new_hi - new_lo + 1) * R) > self.cfg.max_dense_voxels:
-            new_lo, new_hi = lo, hi  # drop the margin before giving up
+            new_lo, new_hi = lo, hi  # drop the margin and slack before giving up
         dims = (new_hi - new_lo + 1).astype(np.int64)
         n_vox = int(np.prod(dims * R))
         if n_vox > self.cfg.max_dense_voxels:

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from photoreg.kernels.transfer import radiance_transfer
+from photoreg.kernels.transfer import any_blocked, radiance_transfer
 from photoreg.lighting import sh
 from photoreg.lighting.parametric import ParametricLight, cone_directions
 from photoreg.render.composite import (Layers, RenderInput, at_stride, bounce, near_objects, refine_seam, shade,
@@ -30,6 +30,11 @@ def real_radiance(inp: RenderInput, near: np.ndarray, ratio: np.ndarray | None =
     return (radiance if ratio is None else radiance * ratio)[near].mean(axis=0)
 
 
+def _cone(inp: RenderInput, light: ParametricLight) -> np.ndarray:
+    """The light's disc as inp.light_rays directions (float32)."""
+    return cone_directions(light.direction, light.angle, inp.light_rays).astype(np.float32)
+
+
 def _disc_shading(inp: RenderInput, light: ParametricLight | None, points: np.ndarray,
                   normals: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Camera-unit shading (no albedo) by the light's disc, gain * c/pi * mean over its rays of V max(n.w, 0),
@@ -37,7 +42,7 @@ def _disc_shading(inp: RenderInput, light: ParametricLight | None, points: np.nd
     if light is None or len(points) == 0:
         zero = np.zeros((len(points), 3), np.float32)
         return zero, zero
-    cone = cone_directions(light.direction, light.angle, inp.light_rays).astype(np.float32)
+    cone = _cone(inp, light)
     t = radiance_transfer(inp.grid, points, normals, cone, np.ones((len(cone), 1), np.float32), inp.offset,
                           inp.ray_length, virtual=inp.virtual)
     k = inp.gain * light.colour / np.pi / 4.0   # transfer = (4 / D) sum_visible cos
@@ -83,7 +88,18 @@ def render_voxel(inp: RenderInput) -> Layers:
     l_virt = colour[covered].mean(axis=0) if covered.any() else np.zeros(3, np.float32)
 
     def ratio_at(points: np.ndarray, normals: np.ndarray) -> np.ndarray:
-        return shadow_ratio(*_shading(inp, F, _transfers(inp, F, light, points, normals), l_real, l_virt))
+        # Only points with a ray the objects block can change (R_TRV = R_TR elsewhere, ratio exactly 1): a
+        # cheap march of the small virtual grid finds them, and the real grid's march, the expensive one,
+        # runs at those alone (TUM with the bunny: 864 of the 2090 stride samples near it).
+        ratio = np.ones((len(points), 3), np.float32)
+        dirs = inp.directions(sh.bands_of(F.shape[1]))[0]
+        if light is not None:
+            dirs = np.concatenate([dirs, _cone(inp, light)])
+        shadowed = any_blocked(inp.virtual, points, normals, dirs, inp.offset, inp.ray_length)
+        if shadowed.any():
+            p, n = points[shadowed], normals[shadowed]
+            ratio[shadowed] = shadow_ratio(*_shading(inp, F, _transfers(inp, F, light, p, n), l_real, l_virt))
+        return ratio
 
     ratio_s = np.ones(maps.vertex.shape, np.float32)
     ratio_s[near] = ratio_at(maps.vertex[near], maps.normal[near])
