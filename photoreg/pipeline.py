@@ -115,6 +115,15 @@ class Pipeline:
         r, c = r[ok], c[ok]
         return radiance[r, c], maps.vertex[r, c], maps.normal[r, c]
 
+    def _traced(self, n: int) -> tuple[np.ndarray, int | None]:
+        """Rows of the frame's n samples whose transfer is traced, and how many kept samples join them (None:
+        all). Every row where the current view gets a solve of its own (no history yet, or the light search
+        is due); else only the current view's share of what the joint solve draws (SampleHistory.draw): the
+        rest would be traced for nothing (TUM at stride 4 with a full history: half of them)."""
+        if self.history is None or (self.sun is not None and self.sun.due()):
+            return np.arange(n), None
+        return self.history.draw(n, self.solver_cfg.max_samples)
+
     def _terms(self, data: Samples) -> list[Term]:
         """The solve's extra terms other than the traced light: the bounce (lighting.bounce)."""
         return [bounce_term(data.transfer, data.radiance)] if self.bounce else []
@@ -211,12 +220,14 @@ class Pipeline:
             with self._timed(t, "sample"):
                 radiance, points, normals = self._samples(prep, maps, pose)
             with self._timed(t, "transfer"):
-                tr = radiance_transfer(grid, points, normals, self.dirs, self.Y,
+                traced, kept = self._traced(len(points))
+                tr = radiance_transfer(grid, points[traced], normals[traced], self.dirs, self.Y,
                                        offset=lc.ray_offset_voxels * rc.voxel_size, ray_length=lc.ray_length)
             with self._timed(t, "solve"):
                 gain = self.exposure.gain(points, radiance)[0] if self.exposure is not None else 1.0
-                current = Samples(radiance / gain, tr.transfer, normals, points, tr.visible_fraction)
-                data = self.history.with_current(current) if self.history is not None else current
+                current = Samples(radiance[traced] / gain, tr.transfer, normals[traced], points[traced],
+                                  tr.visible_fraction)
+                data = self.history.with_current(current, kept) if self.history is not None else current
                 previous = self.filter.prediction() if self.filter is not None else self.prev_F
             sun, sol, own = self._lighting(grid, current, data, previous, t)
             with self._timed(t, "solve"):
@@ -245,7 +256,7 @@ class Pipeline:
                     filtered, diag.change_detected = self.filter.update(sol, new_view)
                     F = Lighting(filtered)
                 if self.exposure is not None:
-                    self.exposure.update(points, current.radiance)
+                    self.exposure.update(points, radiance / gain)
             if self.render is not None:
                 with self._timed(t, "render"):
                     composite = self.render(prep.linear, prep.depth, grid, maps, pose, F.sh, gain, diag.sun)

@@ -162,6 +162,43 @@ def test_the_views_own_solve_runs_only_for_the_light_search(tmp_path, monkeypatc
     assert len(pipe.history) > 0
 
 
+def test_draw_takes_each_part_s_share_of_the_solve():
+    """SampleHistory.draw: with n current and k kept samples and a solve of at most `limit`, the current rows
+    and the kept count are each part's expected share of a random draw of `limit`; everything where all fit."""
+    hist = SampleHistory(6000, seed=0)
+    assert hist.draw(500, 1000)[1] is None and len(hist.draw(500, 1000)[0]) == 500   # nothing kept yet
+    hist.add(frame_samples(0, 6000))
+    rows, kept = hist.draw(3000, 4500)                                              # 3000 + 6000 > 4500
+    assert len(rows) == 1500 and kept == 3000 and np.all(np.diff(rows) > 0) and rows.max() < 3000
+    assert len(hist.with_current(frame_samples(1, 1500).take(np.arange(1500)), kept)) == 4500
+    rows, kept = hist.draw(3000, 9000)
+    assert kept is None and np.array_equal(rows, np.arange(3000))
+    assert hist.draw(3000, None)[1] is None
+
+
+def test_only_samples_the_solve_takes_are_traced(tmp_path, monkeypatch):
+    """With a full history and no light search due, the transfer traces only the current view's share of the
+    joint solve's draw (lighting.max_samples of the current and kept samples), and the solve gets that many."""
+    k = Intrinsics(64, 48, 56.0, 56.0, 31.5, 23.5, 5000.0)
+    rec = open_recording(write_recording(tmp_path / "rec", k, 4, with_gt=False))
+    traced, solved = [], []
+    transfer, solve = pipeline_module.radiance_transfer, pipeline_module.solve
+    monkeypatch.setattr(pipeline_module, "radiance_transfer", lambda g, p, *a, **kw: traced.append(len(p)) or
+                        transfer(g, p, *a, **kw))
+    monkeypatch.setattr(pipeline_module, "solve", lambda *a, **kw: solved.append(len(a[0])) or solve(*a, **kw))
+    s = Session(device="cpu")
+    s.lighting.rays, s.lighting.stride, s.lighting.sun, s.lighting.max_samples = 16, 2, False, 100
+    pipe = Pipeline(s, rec.intrinsics)
+    offered = []
+    sample = pipe._samples
+    monkeypatch.setattr(pipe, "_samples", lambda *a: (lambda r: offered.append(len(r[0])) or r)(sample(*a)))
+    for frame in iter_frames(rec, range(4)):
+        pipe.process(frame)
+    assert offered[0] == traced[0] == solved[0]                                   # no history yet: all of them
+    drawn = [(n, t, m) for n, t, m in zip(offered, traced, solved) if t < n]
+    assert drawn and all(m == 100 for *_, m in drawn), (offered, traced, solved)   # a share of 100, kept ones too
+
+
 def test_the_filter_is_told_when_a_frame_reaches_a_new_view(tmp_path, monkeypatch):
     """The pipeline passes the history's verdict (SampleHistory.add) to the filter: the first frame and a frame
     11 degrees on are new views, the same pose again is not (photoreg.lighting.temporal: the prior's precision is

@@ -80,10 +80,24 @@ class SampleHistory:
     def __len__(self) -> int:
         return 0 if self.kept is None else len(self.kept)
 
-    def with_current(self, current: Samples) -> Samples:
-        """The current frame's samples followed by the kept ones: the solve's input."""
-        return current if self.kept is None or self.kept.transfer.shape[1] != current.transfer.shape[1] \
-            else current.concat(self.kept)
+    def draw(self, n: int, limit: int | None) -> tuple[np.ndarray, int | None]:
+        """The rows of a frame's n samples, and how many kept samples (None: all), that a solve drawing at most
+        `limit` of them all at random would take: each part's expected share, n * limit / (n + kept), drawn
+        here, so that only those rows need their transfer traced. All rows where the solve takes everything."""
+        k = len(self)
+        if limit is None or k == 0 or n + k <= limit:
+            return np.arange(n), None
+        n_cur = min(n, math.ceil(n * limit / (n + k)))
+        return np.sort(self.rng.choice(n, n_cur, replace=False)), limit - n_cur
+
+    def with_current(self, current: Samples, kept: int | None = None) -> Samples:
+        """The current frame's samples followed by the kept ones (a random `kept` of them, when given and
+        fewer): the solve's input."""
+        if self.kept is None or self.kept.transfer.shape[1] != current.transfer.shape[1]:
+            return current
+        if kept is None or kept >= len(self.kept):
+            return current.concat(self.kept)
+        return current.concat(self.kept.take(np.sort(self.rng.choice(len(self.kept), kept, replace=False))))
 
     def add(self, current: Samples, pose: np.ndarray | None = None) -> bool:
         """Offer a frame's samples, seen from `pose` (4x4 camera-to-world; None: a new view): a new view's join
