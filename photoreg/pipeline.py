@@ -128,10 +128,11 @@ class Pipeline:
         """The solve's extra terms other than the traced light: the bounce (lighting.bounce)."""
         return [bounce_term(data.transfer, data.radiance)] if self.bounce else []
 
-    def _solve(self, data: Samples, previous, terms: list[Term], grid=None, sun: Sun | None = None, start=None):
+    def _solve(self, data: Samples, previous, terms: list[Term], grid=None, sun: Sun | None = None, start=None,
+               current: int | None = None):
         """The robust solve of `data` with `terms` (self._terms(data)), and with the traced light `sun` (its
         disc traced through `grid` from every sample) when given; `start`: the solve of the same samples
-        without it."""
+        without it; `current`: how many of data's first rows are the current view's (data holds kept ones)."""
         lc = self.session.lighting
         terms = list(terms)
         cfg = self.solver_cfg
@@ -143,7 +144,7 @@ class Pipeline:
             # the SH part of the joint solve holds only what the traced light leaves: regularised more (config.py)
             cfg = dataclasses.replace(cfg, regularization=lc.sun_regularization)
         return solve(data.radiance, data.transfer, data.normals, data.visible, cfg, points=data.points,
-                     reference=previous, terms=terms, start=start)
+                     reference=previous, terms=terms, start=start, current=current)
 
     def _find_sun(self, grid, current: Samples, sol, terms: list[Term]) -> Sun | None:
         """The dominant light (photoreg.lighting.sun) from the current view's samples and their solve `sol`
@@ -178,14 +179,16 @@ class Pipeline:
                 sun = self._find_sun(grid, current, own, own_terms)
         if sun is not None:
             with self._timed(t, "sun"):
-                joint = self._solve(data, previous, terms, grid, sun, start=own if data is current else None)
+                split = None if data is current else len(current)
+                joint = self._solve(data, previous, terms, grid, sun, start=own if split is None else None,
+                                    current=split)
             if joint.terms["sun"] @ sh.LUMINANCE > 0:
                 return sun, joint, own
             sun = None
         if data is current:
             return sun, own, own
         with self._timed(t, "solve"):
-            return sun, self._solve(data, previous, terms), own
+            return sun, self._solve(data, previous, terms, current=len(current)), own
 
     def process(self, frame: Frame) -> FrameResult:
         """Run every stage on one frame; a weak or empty frame still yields a finite estimate."""

@@ -132,6 +132,7 @@ class Solution:
     samples: np.ndarray | None = None           # indices of the fitted samples in the inputs ...
     labels: np.ndarray | None = None            # ... their albedo regions (-1: none) ...
     weights: np.ndarray | None = None           # ... and final weights (normal x robust), for the sun search
+    current_system: NormalEquations | None = None  # `system` over the current view's rows alone (solve's `current`)
     setup: "_Setup | None" = None               # what a later solve on the same samples reuses (solve's `start`)
 
 
@@ -524,7 +525,8 @@ def _split_mixed(labels, A, I, F, w, points, normals, min_count: int) -> np.ndar
 
 
 def solve(radiance, transfer, normals, visible, cfg: SolverConfig, prior=None, mask=None,
-          points=None, reference=None, terms: list[Term] | None = None, start: Solution | None = None) -> Solution:
+          points=None, reference=None, terms: list[Term] | None = None, start: Solution | None = None,
+          current: int | None = None) -> Solution:
     """Robust lighting of one frame (module docstring). Inputs as solver.solve_lighting, plus optional
     world `points` (N, 3) for spatial hold-out folds and `reference` (3, B'*B'), the previous lighting:
     its colour balance fixes the albedo scale (instead of cfg.albedo_reference) and it is returned
@@ -536,7 +538,9 @@ def solve(radiance, transfer, normals, visible, cfg: SolverConfig, prior=None, m
     docstring; they need cfg.select = "fixed"). `start`: a solution of the same inputs with other terms or another
     regularisation (the pipeline's solve before the traced light is added): its sample weights and first-pass
     (colour) albedo regions are reused when it fitted the same samples with the same settings (same result,
-    less work)."""
+    less work). `current`: the inputs' first `current` rows are the current view's, the rest earlier views' (the
+    pipeline's history): Solution.current_system then holds the normal equations over the current view's rows
+    alone, for the temporal filter's change test."""
     b_fit = cfg.fit_bands
     k_fit = b_fit * b_fit
     radiance, transfer, normals, idx, prior, notes = select_samples(radiance, transfer, normals, visible, cfg,
@@ -650,7 +654,8 @@ def solve(radiance, transfer, normals, visible, cfg: SolverConfig, prior=None, m
     k = bands * bands
     Ak = A if p else np.ascontiguousarray(A[:, :k])  # extra terms imply fixed bands: k = k_fit
     # regions holds the final labels; its design is A's unless fewer bands were selected
-    G, g, c0 = _channel_systems(*(regions if Ak is A else _Regions.of(Ak, I, labels, m)).grams(w), rho)
+    final = regions if Ak is A else _Regions.of(Ak, I, labels, m)
+    G, g, c0 = _channel_systems(*final.grams(w), rho)
     prior_b = np.hstack([prior_fit[:, :k], np.zeros((3, p))])
     F, lams = _solve_channels(G, g, lam_rel, prior_b[:, :k], p, ub)
     G_sh, g_sh = G[:, :k, :k], g[:, :k]
@@ -704,7 +709,13 @@ def solve(radiance, transfer, normals, visible, cfg: SolverConfig, prior=None, m
         weak=bool(too_few or rank < k or cond > cfg.max_condition or fallback), notes=notes,
         bands=bands, regularization=float(lam_rel), albedo=rho.tolist(), inlier_fraction=inliers,
         unobserved=missing, observed_fraction=observed, heldout_residual=heldout)
-    system = NormalEquations(G_sh, g_sh, c0, lams, sigma2 if np.isfinite(sigma2) else 1.0, n_fit)
+    sigma2 = sigma2 if np.isfinite(sigma2) else 1.0
+    system = NormalEquations(G_sh, g_sh, c0, lams, sigma2, n_fit)
+    current_system = None
+    if current is not None:
+        w_cur = np.where(idx < current, w, 0.0)
+        G_c, g_c, c0_c = _channel_systems(*final.grams(w_cur), rho)
+        current_system = NormalEquations(G_c[:, :k, :k], g_c[:, :k], c0_c, lams, sigma2, int((w_cur > 0).sum()))
     return Solution(Lighting(_as_sh(F, tsh)), diag, system, rho,
                     terms={t.name: F[:, k + j].copy() for j, t in enumerate(terms)}, samples=idx, labels=labels,
-                    weights=w, setup=setup)
+                    weights=w, setup=setup, current_system=current_system)

@@ -13,7 +13,9 @@ State: F (3, K) at the filter's band count, per channel a precision matrix (K, K
             gives z and its precision J = (G + lam I) / sigma^2 at the frame's band count; bands the
             frame did not fit get no information, so they keep the prediction;
   detect    ratio = SSE(prediction) / SSE(z) on the frame's own samples and weights: how much worse
-            the predicted lighting explains this frame than its own fit. Model misfit keeps this well
+            the predicted lighting explains this frame than its own fit (with a history of samples, on
+            the current view's rows alone: Solution.current_system; over all rows two thirds of a switch
+            frame's samples were lit by the old light and the ratio stayed at the threshold). Model misfit keeps this well
             above 1 on a static scene (1.3-4 measured on the synthetic recordings), so the test is
             relative: above (1 + change_threshold) * the median ratio of the last HISTORY frames the
             light changed (switched on or off): the filter forgets and restarts from z, so it follows
@@ -95,8 +97,9 @@ class LightingFilter:
         q = self.cfg.process_noise * self.k / np.where(tr > 0, tr, 1.0)
         ridge = 1e-12 * np.trace(self.precision, axis1=1, axis2=2)[:, None, None] / self.k  # keeps inv() finite
         L_p = np.linalg.inv(np.linalg.inv(self.precision + ridge * eye) + q[:, None, None] * eye)
-        floor = 1e-12 * max(float(system.c0.sum()), 1e-300)
-        ratio = (system.sse(x_p) + floor) / (max(system.sse(z), 0.0) + floor)
+        check = sol.current_system if sol.current_system is not None else system
+        floor = 1e-12 * max(float(check.c0.sum()), 1e-300)
+        ratio = (check.sse(x_p) + floor) / (max(check.sse(z), 0.0) + floor)
         baseline = float(np.median(self.ratios)) if self.ratios else 1.0
         if ratio > (1.0 + self.cfg.change_threshold) * max(baseline, 1.0):
             self.x, self.precision = z_full, J
