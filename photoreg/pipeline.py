@@ -119,7 +119,7 @@ class Pipeline:
         """Rows of the frame's n samples whose transfer is traced, and how many kept samples join them (None:
         all). Every row where the current view gets a solve of its own (no history yet, or the light search
         is due); else only the current view's share of what the joint solve draws (SampleHistory.draw): the
-        rest would be traced for nothing (TUM at stride 4 with a full history: half of them)."""
+        rest would be traced for nothing (TUM at stride 4: 5700 of 7500 samples traced)."""
         if self.history is None or (self.sun is not None and self.sun.due()):
             return np.arange(n), None
         return self.history.draw(n, self.solver_cfg.max_samples)

@@ -15,11 +15,11 @@ State: F (3, K) at the filter's band count, per channel a precision matrix (K, K
   detect    ratio = SSE(prediction) / SSE(z) on the frame's own samples and weights: how much worse
             the predicted lighting explains this frame than its own fit (with a history of samples, on
             the current view's rows alone: Solution.current_system; over all rows two thirds of a switch
-            frame's samples were lit by the old light and the ratio stayed at the threshold). Model misfit keeps this well
-            above 1 on a static scene (1.3-4 measured on the synthetic recordings), so the test is
-            relative: above (1 + change_threshold) * the median ratio of the last HISTORY frames the
-            light changed (switched on or off): the filter forgets and restarts from z, so it follows
-            within a frame or two instead of averaging the old light in;
+            frame's samples were lit by the old light and the ratio stayed at the threshold). Model
+            misfit keeps this well above 1 on a static scene (1.3-4 measured on the synthetic
+            recordings), so the test is relative: above (1 + change_threshold) * the median ratio of
+            the last HISTORY frames the light changed (switched on or off): the filter forgets and
+            restarts from z, so it follows within a frame or two instead of averaging the old light in;
   update    Lambda = Lambda_p + J, x = Lambda^-1 (Lambda_p x_p + J z).
 Directions the data never observe (a single plane) stay at the prediction.
 """

@@ -90,7 +90,8 @@ def render_voxel(inp: RenderInput) -> Layers:
     def ratio_at(points: np.ndarray, normals: np.ndarray) -> np.ndarray:
         # Only points with a ray the objects block can change (R_TRV = R_TR elsewhere, ratio exactly 1): a
         # cheap march of the small virtual grid finds them, and the real grid's march, the expensive one,
-        # runs at those alone (TUM with the bunny: 864 of the 2090 stride samples near it).
+        # runs at those alone (TUM with the bunny: 864 of the 2090 stride samples near it). shadow_ratio's eps
+        # guard then averages over those points only; on the TUM and demo frames measured the ratio was the same.
         ratio = np.ones((len(points), 3), np.float32)
         dirs = inp.directions(sh.bands_of(F.shape[1]))[0]
         if light is not None:
