@@ -122,3 +122,28 @@ def test_cone_directions_cover_the_disc_uniformly():
     assert abs(np.mean(cos >= half) - 0.5) < 0.01
     with pytest.raises(ValueError):
         cone_directions(d, a, 0)
+
+
+@pytest.mark.parametrize("bands", [3, 5])
+def test_lobe_angle_is_the_best_of_the_grid(bands):
+    """The lobe's angle is the grid angle whose attenuation explains the most of F's fitted bands (the energy
+    of _lobe_fit, evaluated here angle by angle; parametric_light takes it from a cached table)."""
+    from photoreg.lighting.parametric import ANGLE_GRID, _band_sums, _lobe_fit, band_attenuation, fit_from, lobe_sh
+
+    rng = np.random.default_rng(bands)
+    lobes = 0
+    for _ in range(10):
+        d = rng.normal(size=3)
+        d /= np.linalg.norm(d)                                   # a disc of random size and direction, a sky
+        F = lobe_sh(np.array([1.0, 0.9, 0.8]), d, math.radians(rng.uniform(1, 25)), bands)
+        F = F + 0.05 * rng.normal(size=F.shape)
+        F[:, 0] += 0.5
+        lo = fit_from(bands)
+        n_l = np.array([(2 * l + 1) / (4 * math.pi) for l in range(lo, bands)])
+        p = _band_sums(sh.luminance(F), d, bands)
+        energy = [_lobe_fit(p, band_attenuation(a, bands), n_l)[1][0] for a in ANGLE_GRID]
+        light = parametric_light(F, d)
+        if light.lobe_share > 0:
+            lobes += 1
+            assert light.angle == float(ANGLE_GRID[int(np.argmax(energy))])
+    assert lobes >= 3
