@@ -120,9 +120,13 @@ class Pipeline:
         all). Every row where the current view gets a solve of its own (no history yet, or the light search
         is due); else only the current view's share of what the joint solve draws (SampleHistory.draw): the
         rest would be traced for nothing (TUM at stride 4: 5700 of 7500 samples traced)."""
-        if self.history is None or (self.sun is not None and self.sun.due()):
+        if self.history is None or self._search_due():
             return np.arange(n), None
         return self.history.draw(n, self.solver_cfg.max_samples)
+
+    def _search_due(self) -> bool:
+        """Whether this frame searches the light (then the current view gets a solve of its own)."""
+        return self.sun is not None and self.sun.due()
 
     def _terms(self, data: Samples) -> list[Term]:
         """The solve's extra terms other than the traced light: the bounce (lighting.bounce)."""
@@ -170,8 +174,7 @@ class Pipeline:
         pass, or a held light refined)."""
         with self._timed(t, "solve"):
             own_terms = self._terms(current)
-            searched = self.sun is not None and self.sun.due()
-            own = self._solve(current, previous, own_terms) if data is current or searched else None
+            own = self._solve(current, previous, own_terms) if data is current or self._search_due() else None
             terms = own_terms if data is current else self._terms(data)
         sun = None
         if self.sun is not None:

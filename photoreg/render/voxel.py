@@ -87,16 +87,17 @@ def render_voxel(inp: RenderInput) -> Layers:
     colour = _virtual_colour(inp, _shading(inp, F, on_object, l_real, l_real)[1], covered)
     l_virt = colour[covered].mean(axis=0) if covered.any() else np.zeros(3, np.float32)
 
+    # Only points with a ray the objects block can change (R_TRV = R_TR elsewhere, ratio exactly 1): a cheap
+    # march of the small virtual grid along every ray of the passes finds them, and the real grid's march, the
+    # expensive one, runs at those alone (TUM with the bunny: 864 of the 2090 stride samples near it).
+    # shadow_ratio's eps guard then averages over those points only; on the TUM and demo frames measured the
+    # ratio was the same.
+    rays = inp.directions(sh.bands_of(F.shape[1]))[0]
+    rays = rays if light is None else np.concatenate([rays, _cone(inp, light)])
+
     def ratio_at(points: np.ndarray, normals: np.ndarray) -> np.ndarray:
-        # Only points with a ray the objects block can change (R_TRV = R_TR elsewhere, ratio exactly 1): a
-        # cheap march of the small virtual grid finds them, and the real grid's march, the expensive one,
-        # runs at those alone (TUM with the bunny: 864 of the 2090 stride samples near it). shadow_ratio's eps
-        # guard then averages over those points only; on the TUM and demo frames measured the ratio was the same.
         ratio = np.ones((len(points), 3), np.float32)
-        dirs = inp.directions(sh.bands_of(F.shape[1]))[0]
-        if light is not None:
-            dirs = np.concatenate([dirs, _cone(inp, light)])
-        shadowed = any_blocked(inp.virtual, points, normals, dirs, inp.offset, inp.ray_length)
+        shadowed = any_blocked(inp.virtual, points, normals, rays, inp.offset, inp.ray_length)
         if shadowed.any():
             p, n = points[shadowed], normals[shadowed]
             ratio[shadowed] = shadow_ratio(*_shading(inp, F, _transfers(inp, F, light, p, n), l_real, l_virt))
