@@ -234,6 +234,41 @@ def test_render_window_holds_the_object_and_its_seam(tmp_path):
     assert stage.window(inside) == (0, 0, INTR.width, INTR.height)
 
 
+@pytest.mark.parametrize("shadows", ["voxel", "none"])
+def test_composite_blends_only_the_layers_region(tmp_path, shadows):
+    """The render stage's layers say which box they change (Layers.region: the G-buffer's window and the reach of
+    the shadow samples); outside it alpha is 0 and the ratio 1, and the composite, blended inside it alone, is
+    the full-frame blend (1 - alpha) cam ratio + alpha colour bit for bit, the camera frame elsewhere."""
+    from photoreg.config import Session
+    from photoreg.render.stage import RenderStage
+
+    s = Session()
+    s.objects = [_cube(tmp_path, scale=0.12, position=[-0.2, 0.1, 0.0], albedo=[0.6, 0.5, 0.4])]
+    s.lighting.stride, s.lighting.rays, s.lighting.ray_length = 2, 16, 0.3
+    s.render.shadows = shadows
+    stage = RenderStage(s, INTR, "cpu")
+    floor = _floor_grid()
+    maps = raycast_surface(floor, INTR, LOOK_DOWN, 0.1, 3.0, stride=2)
+    low = np.array([[-0.8, 0.0, 0.6]])                              # a low light: the shadow reaches past the window
+    F = np.outer([1.0, 0.9, 0.8], 2.0 * sh.sh_basis(low, 3)[0]) + np.outer([0.3, 0.3, 0.3], np.eye(9)[0])
+    camera = np.random.default_rng(0).uniform(0.2, 0.8, (INTR.height, INTR.width, 3)).astype(np.float32)
+    out = stage(camera, np.ones((INTR.height, INTR.width), np.float32), floor, maps, LOOK_DOWN, F)
+    layers = stage.last
+    x0, y0, x1, y1 = layers.region
+    assert (x1 - x0) * (y1 - y0) < 0.6 * INTR.width * INTR.height
+    inside = np.zeros((INTR.height, INTR.width), bool)
+    inside[y0:y1, x0:x1] = True
+    assert (layers.alpha[~inside] == 0).all() and (layers.ratio[~inside] == 1).all()
+    assert (layers.alpha[inside] > 0).any()
+    if shadows == "voxel":
+        wx0, wy0, wx1, wy1 = stage.last_input.gbuffer.window
+        beyond = inside.copy()
+        beyond[wy0:wy1, wx0:wx1] = False
+        assert (layers.ratio[beyond] < 1).any()
+    a = layers.alpha[..., None]
+    assert np.array_equal(out, (1.0 - a) * camera * layers.ratio + a * layers.colour)
+
+
 def test_render_window_with_egl(tmp_path):
     """With EGL the G-buffer rasterises the window alone (its own viewport and principal point): the same
     G-buffer, in a process whose pyrender runs on EGL (Mesa's here, NVIDIA's on a GPU machine)."""

@@ -168,7 +168,7 @@ def bounce_term(transfer: np.ndarray, radiance: np.ndarray) -> Term:
     of the observed sample radiance (N, 3) (module docstring)."""
     rad = np.asarray(radiance, dtype=np.float64).reshape(-1, 3)
     ok = np.isfinite(rad).all(axis=1)
-    upper = np.median(rad[ok], axis=0) if ok.any() else np.zeros(3)
+    upper = np.array([alb.median(c) for c in rad[ok].T]) if ok.any() else np.zeros(3)
     return Term("bounce", sh.blocked_share(transfer)[:, 0], upper=upper)
 
 

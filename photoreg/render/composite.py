@@ -70,6 +70,8 @@ class Layers:
     alpha: np.ndarray               # (H, W) in [0, 1]
     ratio: np.ndarray               # (H, W, 3): real pixel gets cam * ratio (1 = unchanged)
     notes: list[str] = field(default_factory=list)
+    region: tuple[int, int, int, int] | None = None  # box (x0, y0, x1, y1) outside which alpha = 0, ratio = 1
+                                                     # (None: anywhere): the compositor blends only inside it
 
 
 def shade(F: np.ndarray, transfer: np.ndarray) -> np.ndarray:
@@ -112,16 +114,35 @@ def near_objects(maps: SurfaceMaps, bounds: np.ndarray, reach: float) -> np.ndar
     return maps.valid & (np.einsum("...i,...i->...", gap, gap) <= np.float32(reach) ** 2)
 
 
-def upsample_ratio(ratio_s: np.ndarray, near: np.ndarray, stride: int, shape: tuple[int, int]) -> np.ndarray:
-    """Bilinear full-resolution ratio from samples at pixels (r*stride, c*stride), computed only inside
-    the box around the `near` samples (1 elsewhere)."""
+def stride_box(near: np.ndarray, stride: int, shape: tuple[int, int]) -> tuple[int, int, int, int] | None:
+    """Pixel box (x0, y0, x1, y1; exclusive) of a full-resolution (H, W) `shape` that holds every pixel whose
+    bilinear taps include a `near` stride sample (upsample_ratio's reach); None when no sample is near."""
     H, W = shape
-    out = np.ones((H, W, ratio_s.shape[-1]), np.float32)
     rows, cols = np.nonzero(near)
     if len(rows) == 0:
+        return None
+    return (int(max((cols.min() - 1) * stride, 0)), int(max((rows.min() - 1) * stride, 0)),
+            int(min((cols.max() + 1) * stride + 1, W)), int(min((rows.max() + 1) * stride + 1, H)))
+
+
+def union_box(*boxes: tuple[int, int, int, int] | None) -> tuple[int, int, int, int] | None:
+    """The smallest box (x0, y0, x1, y1) holding every given box; empty ones (x1 <= x0 or y1 <= y0) and None
+    hold nothing."""
+    boxes = [b for b in boxes if b is not None and b[2] > b[0] and b[3] > b[1]]
+    if not boxes:
+        return None
+    return (min(b[0] for b in boxes), min(b[1] for b in boxes), max(b[2] for b in boxes), max(b[3] for b in boxes))
+
+
+def upsample_ratio(ratio_s: np.ndarray, near: np.ndarray, stride: int, shape: tuple[int, int]) -> np.ndarray:
+    """Bilinear full-resolution ratio from samples at pixels (r*stride, c*stride), computed only inside
+    stride_box of the `near` samples (1 elsewhere)."""
+    H, W = shape
+    out = np.ones((H, W, ratio_s.shape[-1]), np.float32)
+    box = stride_box(near, stride, shape)
+    if box is None:
         return out
-    y0, y1 = max((rows.min() - 1) * stride, 0), min((rows.max() + 1) * stride + 1, H)
-    x0, x1 = max((cols.min() - 1) * stride, 0), min((cols.max() + 1) * stride + 1, W)
+    x0, y0, x1, y1 = box
     ys, xs = np.mgrid[y0:y1, x0:x1].astype(np.float32) / stride
     out[y0:y1, x0:x1] = cv2.remap(ratio_s.astype(np.float32), xs, ys, cv2.INTER_LINEAR,
                                   borderMode=cv2.BORDER_REPLICATE).reshape(y1 - y0, x1 - x0, -1)
@@ -151,7 +172,17 @@ def refine_seam(ratio: np.ndarray, inp: RenderInput, near: np.ndarray,
 
 
 def composite(camera: np.ndarray, layers: Layers) -> np.ndarray:
-    """The one blend: (1 - alpha) * cam * ratio + alpha * colour, linear float32, finite."""
-    a = layers.alpha[..., None]
-    out = (1.0 - a) * camera * layers.ratio + a * layers.colour
-    return np.nan_to_num(out, nan=0.0, posinf=0.0, neginf=0.0).astype(np.float32)
+    """The one blend: (1 - alpha) * cam * ratio + alpha * colour, linear float32, finite; outside
+    layers.region the camera frame itself (the full-frame blend was most of the render stage's host time
+    on an H100)."""
+    out = np.array(camera, dtype=np.float32)
+    if not np.isfinite(out).all():
+        np.nan_to_num(out, copy=False, nan=0.0, posinf=0.0, neginf=0.0)
+    H, W = out.shape[:2]
+    x0, y0, x1, y1 = layers.region if layers.region is not None else (0, 0, W, H)
+    if x1 > x0 and y1 > y0:
+        box = slice(y0, y1), slice(x0, x1)
+        a = layers.alpha[box][..., None]
+        blend = (1.0 - a) * out[box] * layers.ratio[box] + a * layers.colour[box]
+        out[box] = np.nan_to_num(blend, nan=0.0, posinf=0.0, neginf=0.0)
+    return out

@@ -36,6 +36,13 @@ class GBuffer:
     position: np.ndarray   # (H, W, 3) float32 world point
     normal: np.ndarray     # (H, W, 3) float32 world unit normal, facing the camera
     albedo: np.ndarray     # (H, W, 3) float32 linear RGB
+    window: tuple[int, int, int, int]  # pixel box (x0, y0, x1, y1; x1, y1 exclusive) holding every covered pixel
+
+    @property
+    def box(self) -> tuple[slice, slice]:
+        """The window as (rows, columns) slices: the layers' only non-zero part."""
+        x0, y0, x1, y1 = self.window
+        return slice(y0, y1), slice(x0, x1)
 
 
 def _import_pyrender():
@@ -154,7 +161,7 @@ class GBufferRenderer:
         has = np.zeros(H * W, bool)
         has[pix] = True
         coverage = np.zeros((H, W), np.float32)
-        coverage[y0:y1, x0:x1] = hit.reshape(h, s, w, s).mean(axis=(1, 3))
-        coverage = np.where(has.reshape(H, W), coverage, 0.0).astype(np.float32)
+        shown = has.reshape(H, W)[y0:y1, x0:x1]
+        coverage[y0:y1, x0:x1] = np.where(shown, hit.reshape(h, s, w, s).mean(axis=(1, 3)), 0.0)
         return GBuffer(coverage, out_depth.reshape(H, W), out_pos.reshape(H, W, 3), out_n.reshape(H, W, 3),
-                       out_alb.reshape(H, W, 3))
+                       out_alb.reshape(H, W, 3), (x0, y0, x1, y1))

@@ -60,13 +60,14 @@ class RenderStage:
         real grid and its stride maps, pose (camera-to-world), lighting F (3, B*B), exposure gain and the
         traced light (SolveDiagnostics.sun) when the solve found one."""
         rc, lc = self.session.reconstruction, self.session.lighting
-        real_depth = np.nan_to_num(sensor_depth).astype(np.float32)
         x0, y0, x1, y1 = self.window(pose)
+        real_depth = np.zeros(sensor_depth.shape, np.float32)   # the G-buffer reads its window alone
         surface = None
         if x1 > x0 and y1 > y0:   # the real surface at every pixel of the window: what hides the objects, the seam
             surface = raycast_surface(grid, self.intrinsics.cropped(x0, y0, x1, y1), pose, rc.depth_min,
                                       rc.depth_max, stride=1)
-            real_depth[y0:y1, x0:x1] = np.where(surface.depth > 0, surface.depth, real_depth[y0:y1, x0:x1])
+            real_depth[y0:y1, x0:x1] = np.where(surface.depth > 0, surface.depth,
+                                                np.nan_to_num(sensor_depth[y0:y1, x0:x1]))
         gb = self.gbuffer.render(pose, real_depth, tolerance=0.5 * rc.voxel_size, window=(x0, y0, x1, y1))
         inp = RenderInput(camera=camera, F=np.asarray(F, np.float64), gain=float(gain), grid=grid,
                           virtual=self.virtual, maps=maps, gbuffer=gb, bounds=self.scene.bounds,

@@ -8,16 +8,23 @@ from photoreg.kernels.transfer import any_blocked, radiance_transfer
 from photoreg.lighting import sh
 from photoreg.lighting.parametric import ParametricLight, cone_directions
 from photoreg.render.composite import (Layers, RenderInput, at_stride, bounce, near_objects, refine_seam, shade,
-                                      shadow_ratio, upsample_ratio)
+                                      shadow_ratio, stride_box, union_box, upsample_ratio)
 
 
 CLOSE = 0.5  # the real surface within this share of the objects' size is what their blocked rays see
 
 
+def _covered(inp: RenderInput) -> np.ndarray:
+    """Which pixels of the G-buffer's window (GBuffer.box) show a virtual surface."""
+    return inp.gbuffer.coverage[inp.gbuffer.box] > 0
+
+
 def _virtual_colour(inp: RenderInput, shading: np.ndarray, covered: np.ndarray) -> np.ndarray:
-    """albedo * shading (camera units, no albedo) at covered pixels, zero elsewhere."""
+    """albedo * shading (camera units, no albedo) at the `covered` pixels of the G-buffer's window (_covered),
+    zero elsewhere."""
     colour = np.zeros(inp.camera.shape, np.float32)
-    colour[covered] = inp.gbuffer.albedo[covered] * np.maximum(shading, 0.0)
+    box = inp.gbuffer.box
+    colour[box][covered] = inp.gbuffer.albedo[box][covered] * np.maximum(shading, 0.0)
     return colour
 
 
@@ -30,30 +37,24 @@ def real_radiance(inp: RenderInput, near: np.ndarray, ratio: np.ndarray | None =
     return (radiance if ratio is None else radiance * ratio)[near].mean(axis=0)
 
 
-def _cone(inp: RenderInput, light: ParametricLight) -> np.ndarray:
-    """The light's disc as inp.light_rays directions (float32)."""
-    return cone_directions(light.direction, light.angle, inp.light_rays).astype(np.float32)
-
-
-def _disc_shading(inp: RenderInput, light: ParametricLight | None, points: np.ndarray,
+def _disc_shading(inp: RenderInput, light: ParametricLight | None, cone: np.ndarray | None, points: np.ndarray,
                   normals: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Camera-unit shading (no albedo) by the light's disc, gain * c/pi * mean over its rays of V max(n.w, 0),
-    under real and under real + virtual occlusion: (N, 3) each (zeros without a light)."""
+    """Camera-unit shading (no albedo) by the light's disc (`cone`: its rays), gain * c/pi * mean over its rays
+    of V max(n.w, 0), under real and under real + virtual occlusion: (N, 3) each (zeros without a light)."""
     if light is None or len(points) == 0:
         zero = np.zeros((len(points), 3), np.float32)
         return zero, zero
-    cone = _cone(inp, light)
     t = radiance_transfer(inp.grid, points, normals, cone, np.ones((len(cone), 1), np.float32), inp.offset,
                           inp.ray_length, virtual=inp.virtual)
     k = inp.gain * light.colour / np.pi / 4.0   # transfer = (4 / D) sum_visible cos
     return t.transfer[:, :1] * k, t.transfer_rv[:, :1] * k
 
 
-def _transfers(inp: RenderInput, F: np.ndarray, light, points, normals):
+def _transfers(inp: RenderInput, F: np.ndarray, light, cone, points, normals):
     """The ray pass at points: the SH transfer (R_TR, R_TRV) and the disc light's shading (composite units)."""
     dirs, Y = inp.directions(sh.bands_of(F.shape[1]))
     t = radiance_transfer(inp.grid, points, normals, dirs, Y, inp.offset, inp.ray_length, virtual=inp.virtual)
-    return t, _disc_shading(inp, light, points, normals)
+    return t, _disc_shading(inp, light, cone, points, normals)
 
 
 def _shading(inp: RenderInput, F: np.ndarray, passes, l_real, l_virt):
@@ -80,12 +81,13 @@ def render_voxel(inp: RenderInput) -> Layers:
         else:
             light = None
             notes.append("no directional light in F: SH transfer only")
+    cone = None if light is None else cone_directions(light.direction, light.angle, inp.light_rays).astype(np.float32)
     near = near_objects(maps, inp.bounds, inp.ray_length)
     l_real = real_radiance(inp, near)
-    covered = gb.coverage > 0
-    on_object = _transfers(inp, F, light, gb.position[covered], gb.normal[covered])
+    covered = _covered(inp)
+    on_object = _transfers(inp, F, light, cone, gb.position[gb.box][covered], gb.normal[gb.box][covered])
     colour = _virtual_colour(inp, _shading(inp, F, on_object, l_real, l_real)[1], covered)
-    l_virt = colour[covered].mean(axis=0) if covered.any() else np.zeros(3, np.float32)
+    l_virt = colour[gb.box][covered].mean(axis=0) if covered.any() else np.zeros(3, np.float32)
 
     # Only points with a ray the objects block can change (R_TRV = R_TR elsewhere, ratio exactly 1): a cheap
     # march of the small virtual grid along every ray of the passes finds them, and the real grid's march, the
@@ -93,14 +95,14 @@ def render_voxel(inp: RenderInput) -> Layers:
     # shadow_ratio's eps guard then averages over those points only; on the TUM and demo frames measured the
     # ratio was the same.
     rays = inp.directions(sh.bands_of(F.shape[1]))[0]
-    rays = rays if light is None else np.concatenate([rays, _cone(inp, light)])
+    rays = rays if light is None else np.concatenate([rays, cone])
 
     def ratio_at(points: np.ndarray, normals: np.ndarray) -> np.ndarray:
         ratio = np.ones((len(points), 3), np.float32)
         shadowed = any_blocked(inp.virtual, points, normals, rays, inp.offset, inp.ray_length)
         if shadowed.any():
             p, n = points[shadowed], normals[shadowed]
-            ratio[shadowed] = shadow_ratio(*_shading(inp, F, _transfers(inp, F, light, p, n), l_real, l_virt))
+            ratio[shadowed] = shadow_ratio(*_shading(inp, F, _transfers(inp, F, light, cone, p, n), l_real, l_virt))
         return ratio
 
     ratio_s = np.ones(maps.vertex.shape, np.float32)
@@ -115,12 +117,13 @@ def render_voxel(inp: RenderInput) -> Layers:
     if close.any():
         l_close = real_radiance(inp, close, ratio_s)
         colour = _virtual_colour(inp, _shading(inp, F, on_object, l_close, l_close)[1], covered)
-    return Layers(colour, gb.coverage, ratio, notes)
+    region = union_box(gb.window, stride_box(near, maps.stride, ratio.shape[:2]))
+    return Layers(colour, gb.coverage, ratio, notes, region)
 
 
 def render_none(inp: RenderInput) -> Layers:
     """The object lit by the unoccluded lighting; real pixels unchanged (the 'no shadow' baseline)."""
-    covered = inp.gbuffer.coverage > 0
-    transfer = sh.unoccluded_transfer(inp.gbuffer.normal[covered], sh.bands_of(inp.F.shape[1]))
+    covered = _covered(inp)
+    transfer = sh.unoccluded_transfer(inp.gbuffer.normal[inp.gbuffer.box][covered], sh.bands_of(inp.F.shape[1]))
     return Layers(_virtual_colour(inp, inp.gain * shade(inp.F, transfer), covered), inp.gbuffer.coverage,
-                  np.ones(inp.camera.shape, np.float32))
+                  np.ones(inp.camera.shape, np.float32), region=inp.gbuffer.window)
