@@ -15,7 +15,7 @@ import numpy as np
 
 from photoreg.device import init_warp
 from photoreg.io.poses import check_pose
-from photoreg.kernels.grid import DenseGrid, free_run, ray_box, sample_sdf
+from photoreg.kernels.grid import SDF_DTYPE, DenseGrid, free_run, ray_box, sample_sdf
 from photoreg.kernels.launch import launch_rows
 from photoreg.types import Intrinsics
 
@@ -38,7 +38,7 @@ class SurfaceMaps:
 
 
 @wp.func
-def sdf_normal(sdf: wp.array3d(dtype=wp.float32), origin: wp.vec3, inv_voxel: float, trunc: float,
+def sdf_normal(sdf: wp.array3d(dtype=SDF_DTYPE), origin: wp.vec3, inv_voxel: float, trunc: float,
                h: float, p: wp.vec3) -> wp.vec3:
     """Unit central-difference gradient of the trilinear SDF at p (step h); zero if degenerate."""
     gx = sample_sdf(sdf, origin, inv_voxel, trunc, p + wp.vec3(h, 0.0, 0.0)) - sample_sdf(
@@ -55,7 +55,7 @@ def sdf_normal(sdf: wp.array3d(dtype=wp.float32), origin: wp.vec3, inv_voxel: fl
 
 
 @wp.kernel
-def _raycast(sdf: wp.array3d(dtype=wp.float32), empty: wp.array3d(dtype=wp.uint8), cell: int, origin: wp.vec3,
+def _raycast(sdf: wp.array3d(dtype=SDF_DTYPE), empty: wp.array3d(dtype=wp.uint8), cell: int, origin: wp.vec3,
              voxel: float, trunc: float, rot: wp.mat33, cam: wp.vec3, fx: float, fy: float, cx: float, cy: float,
              stride: int, depth_min: float, depth_max: float, min_step: float, row0: int,
              depth: wp.array2d(dtype=wp.float32), vertex: wp.array2d(dtype=wp.vec3),

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from photoreg.device import init_warp
-from photoreg.kernels.grid import DenseGrid
+from photoreg.kernels.grid import SDF_DTYPE, DenseGrid
 from photoreg.kernels.launch import launch_rows
 from photoreg.kernels.transfer import ray_blocked
 
@@ -127,7 +127,7 @@ def _lookup(depth: wp.array2d(dtype=wp.float32), corner: wp.vec3, u: wp.vec3, v:
 
 
 @wp.kernel
-def _real_visibility(sdf: wp.array3d(dtype=wp.float32), empty: wp.array3d(dtype=wp.uint8), cell: int,
+def _real_visibility(sdf: wp.array3d(dtype=SDF_DTYPE), empty: wp.array3d(dtype=wp.uint8), cell: int,
                      origin: wp.vec3, voxel: float, trunc: float, points: wp.array(dtype=wp.vec3),
                      normals: wp.array(dtype=wp.vec3), d: wp.vec3, u: wp.vec3, v: wp.vec3, tan_angle: float,
                      offset: float, length: float, min_step: float, samples: int, row0: int,

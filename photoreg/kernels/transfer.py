@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from photoreg.device import init_warp
-from photoreg.kernels.grid import DenseGrid, free_run, ray_box, sample_sdf
+from photoreg.kernels.grid import SDF_DTYPE, DenseGrid, free_run, ray_box, sample_sdf
 from photoreg.kernels.launch import launch_rows
 from photoreg.lighting.sh import bands_of, fibonacci_sphere, sh_basis
 
@@ -50,7 +50,7 @@ def make_direction_set(rays: int, bands: int, seed: int | None = None) -> tuple[
 
 
 @wp.func
-def ray_blocked(sdf: wp.array3d(dtype=wp.float32), empty: wp.array3d(dtype=wp.uint8), cell: int, origin: wp.vec3,
+def ray_blocked(sdf: wp.array3d(dtype=SDF_DTYPE), empty: wp.array3d(dtype=wp.uint8), cell: int, origin: wp.vec3,
                 voxel: float, trunc: float, o: wp.vec3, w: wp.vec3, length: float, min_step: float) -> bool:
     """True when the SDF turns negative on o + t w, 0 <= t <= length (SDF-sized steps, >= min_step,
     jumping across empty cells)."""
@@ -73,10 +73,10 @@ def ray_blocked(sdf: wp.array3d(dtype=wp.float32), empty: wp.array3d(dtype=wp.ui
 
 
 @wp.kernel
-def _occlusion(sdf: wp.array3d(dtype=wp.float32), empty: wp.array3d(dtype=wp.uint8), cell: int, origin: wp.vec3,
+def _occlusion(sdf: wp.array3d(dtype=SDF_DTYPE), empty: wp.array3d(dtype=wp.uint8), cell: int, origin: wp.vec3,
                voxel: float, trunc: float, points: wp.array(dtype=wp.vec3), normals: wp.array(dtype=wp.vec3),
                dirs: wp.array(dtype=wp.vec3), offset: float, ray_length: float, min_step: float,
-               has_virtual: int, vsdf: wp.array3d(dtype=wp.float32), vempty: wp.array3d(dtype=wp.uint8), vcell: int,
+               has_virtual: int, vsdf: wp.array3d(dtype=SDF_DTYPE), vempty: wp.array3d(dtype=wp.uint8), vcell: int,
                vorigin: wp.vec3, vvoxel: float, vtrunc: float, vmin_step: float, row0: int,
                occ: wp.array2d(dtype=wp.uint8)):
     t, k = wp.tid()
@@ -120,7 +120,7 @@ def _project(normals: wp.array(dtype=wp.vec3), dirs: wp.array(dtype=wp.vec3), yt
 
 
 @wp.kernel
-def _any_blocked(sdf: wp.array3d(dtype=wp.float32), empty: wp.array3d(dtype=wp.uint8), cell: int, origin: wp.vec3,
+def _any_blocked(sdf: wp.array3d(dtype=SDF_DTYPE), empty: wp.array3d(dtype=wp.uint8), cell: int, origin: wp.vec3,
                  voxel: float, trunc: float, points: wp.array(dtype=wp.vec3), normals: wp.array(dtype=wp.vec3),
                  dirs: wp.array(dtype=wp.vec3), offset: float, ray_length: float, min_step: float, row0: int,
                  hit: wp.array(dtype=wp.uint8)):

@@ -19,7 +19,7 @@ import numpy as np
 
 from photoreg.device import init_warp, open3d_device
 from photoreg.io.poses import check_pose
-from photoreg.kernels.grid import DenseGrid, copy_into, scatter_blocks, update_empty_distance
+from photoreg.kernels.grid import SDF_DTYPE, DenseGrid, copy_into, scatter_blocks, update_empty_distance
 from photoreg.types import Intrinsics
 
 wp = init_warp()
@@ -42,7 +42,7 @@ class FusionConfig:
     # turning camera regrows it less often (each growth copies the whole brick). A live scan of a 4 x 4 x 3 m
     # room (72 views, an export per frame): 8 growths and a 384 MiB brick; 0.25: 7 and 605 MiB; 0: 9, 302 MiB.
     grid_growth: float = 0.1
-    max_dense_voxels: int = 1 << 27    # dense brick limit (512 MB of float32)
+    max_dense_voxels: int = 1 << 27    # dense brick limit (256 MB of float16)
 
     def __post_init__(self):
         if not (self.voxel_size > 0 and self.trunc_voxels > 0 and self.block_resolution > 0):
@@ -197,7 +197,7 @@ class TSDFVolume:
                 f"dense SDF brick would need {n_vox} voxels ({size_m[0]:.2f} x {size_m[1]:.2f} x {size_m[2]:.2f} m "
                 f"at {self.cfg.voxel_size} m), more than FusionConfig.max_dense_voxels = {self.cfg.max_dense_voxels}; "
                 "raise the limit, use larger voxels or a smaller depth_max")
-        sdf = wp.full(tuple(int(d * R) for d in dims), self.cfg.trunc, dtype=wp.float32, device=self.device)
+        sdf = wp.full(tuple(int(d * R) for d in dims), self.cfg.trunc, dtype=SDF_DTYPE, device=self.device)
         occupied = wp.zeros(tuple(int(d) for d in dims), dtype=wp.uint8, device=self.device)
         if self._sdf is not None:
             copy_into(self._sdf, sdf, (self._lo_block - new_lo) * R)

@@ -14,7 +14,7 @@ import numpy as np
 
 from photoreg.config import ObjectConfig
 from photoreg.device import init_warp
-from photoreg.kernels.grid import DenseGrid, update_empty_distance
+from photoreg.kernels.grid import SDF_DTYPE, SDF_NUMPY, DenseGrid, update_empty_distance
 
 wp = init_warp()
 
@@ -137,6 +137,6 @@ def sdf_grid(sdf: np.ndarray, origin, voxel: float, trunc: float, device: str) -
     occ_wp = wp.array(occupied, dtype=wp.uint8, device=device)
     empty = wp.empty_like(occ_wp)
     update_empty_distance(occ_wp, empty)
-    return DenseGrid(sdf=wp.array(sdf, dtype=wp.float32, device=device),
+    return DenseGrid(sdf=wp.array(sdf.astype(SDF_NUMPY), dtype=SDF_DTYPE, device=device),
                      origin=np.asarray(origin, np.float64), voxel_size=float(voxel), trunc=float(trunc),
                      shape=tuple(int(d) for d in sdf.shape), empty=empty, cell=GRID_CELL)
