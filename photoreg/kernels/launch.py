@@ -9,6 +9,7 @@ else os.cpu_count().
 """
 from __future__ import annotations
 
+import itertools
 import os
 from concurrent.futures import ThreadPoolExecutor
 
@@ -65,9 +66,18 @@ def launch_rows(kernel, dim: tuple[int, ...], inputs: list, outputs: list, devic
     wp.load_module(kernel.module, device=device)  # compile/load once here, not concurrently in the workers
     edges = [rows * b // n_blocks for b in range(n_blocks + 1)]
 
-    def block(b: int) -> None:
-        wp.launch(kernel, dim=(edges[b + 1] - edges[b], *dim[1:]), inputs=[*inputs, edges[b]], outputs=outputs,
-                  device=device)
+    blocks = itertools.count()  # next() is atomic under the GIL: each block is taken once
 
-    for f in [_pool(threads).submit(block, b) for b in range(n_blocks)]:
-        f.result()  # re-raises a block's error
+    def work() -> None:
+        """Launch blocks until none is left (the blocks balance the rows' costs, not one task per block: a pool
+        task costs about as much as a launch, 0.1 ms, while small launches take about that)."""
+        while (b := next(blocks)) < n_blocks:
+            wp.launch(kernel, dim=(edges[b + 1] - edges[b], *dim[1:]), inputs=[*inputs, edges[b]],
+                      outputs=outputs, device=device)
+
+    helpers = [_pool(threads).submit(work) for _ in range(threads - 1)]
+    try:
+        work()  # the calling thread takes blocks too
+    finally:
+        for f in helpers:
+            f.result()  # waits for every block; re-raises a block's error
