@@ -90,9 +90,13 @@ def test_gbuffer_renderers_share_one_offscreen_renderer(tmp_path):
     assert small.gl is big.gl
     areas = [small.render(np.eye(4)).coverage.sum(), big.render(np.eye(4)).coverage.sum()]
     assert np.isclose(small.render(np.eye(4)).coverage.sum(), areas[0]) and areas[1] > 3.5 * areas[0]
+    window = (16, 12, 48, 36)                     # a window's viewport: with OSMesa a renderer of its own size,
+    for g, area in ((small, areas[0]), (big, areas[1])):   # which both draw with, each its own scene
+        assert np.isclose(g.render(np.eye(4), window=window).coverage.sum(), area)
     del small
     gc.collect()
     assert np.isclose(big.render(np.eye(4)).coverage.sum(), areas[1])
+    assert np.isclose(big.render(np.eye(4), window=window).coverage.sum(), areas[1])
 
 
 def test_virtual_visibility_never_exceeds_real(tmp_path):
