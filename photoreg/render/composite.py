@@ -149,26 +149,39 @@ def upsample_ratio(ratio_s: np.ndarray, near: np.ndarray, stride: int, shape: tu
     return out
 
 
-def refine_seam(ratio: np.ndarray, inp: RenderInput, near: np.ndarray,
-                ratio_at: Callable[[np.ndarray, np.ndarray], np.ndarray]) -> None:
-    """Replace, in place, the interpolated full-resolution ratio (upsample_ratio of the `near` stride samples)
-    by ratio_at(points, normals) -> (N, 3) at the real pixels whose bilinear taps include a sample the objects
-    hide (coverage >= VIRTUAL_COVERAGE there): that sample's real surface lies under or behind an object, and
-    its ratio, dark there, drew a seam along the object's silhouette (demo frame 20 with the true lighting:
-    the pixels just outside the object 10% darker than the path tracer's, composite si-RMSE 0.038 against
-    0.029 for the path-traced object pasted). Needs inp.surface (none: nothing changes); pixels outside its
-    window keep the interpolated ratio."""
+def seam_band(inp: RenderInput, near: np.ndarray) -> np.ndarray | None:
+    """The real pixels, as a mask over inp.surface's window, whose bilinear taps of the interpolated ratio
+    (upsample_ratio of the `near` stride samples) include a sample the objects hide (coverage >= VIRTUAL_COVERAGE
+    there): that sample's real surface lies under or behind an object, and its ratio, dark there, drew a seam
+    along the object's silhouette (demo frame 20 with the true lighting: the pixels just outside the object 10%
+    darker than the path tracer's, composite si-RMSE 0.038 against 0.029 for the path-traced object pasted).
+    None without inp.surface or where no such pixel is."""
     if inp.surface is None:
-        return
+        return None
     hidden = near & (at_stride(inp.gbuffer.coverage, inp.maps) >= VIRTUAL_COVERAGE)
     if not hidden.any():
-        return
+        return None
     shown = upsample_ratio(np.where(hidden, 0.0, 1.0)[..., None].astype(np.float32), near, inp.maps.stride,
-                           ratio.shape[:2])[..., 0]
+                           inp.camera.shape[:2])[..., 0]
     (x0, y0), (h, w) = inp.surface_origin, inp.surface.depth.shape
     band = (shown[y0:y0 + h, x0:x0 + w] < 1.0) & (inp.gbuffer.coverage[y0:y0 + h, x0:x0 + w] < 1.0) & inp.surface.valid
-    if band.any():
-        ratio[y0:y0 + h, x0:x0 + w][band] = ratio_at(inp.surface.vertex[band], inp.surface.normal[band])
+    return band if band.any() else None
+
+
+def set_seam(ratio: np.ndarray, inp: RenderInput, band: np.ndarray, values: np.ndarray) -> None:
+    """Write `values` (N, 3), one per pixel of seam_band's `band`, into the full-resolution ratio, in place."""
+    (x0, y0), (h, w) = inp.surface_origin, inp.surface.depth.shape
+    ratio[y0:y0 + h, x0:x0 + w][band] = values
+
+
+def refine_seam(ratio: np.ndarray, inp: RenderInput, near: np.ndarray,
+                ratio_at: Callable[[np.ndarray, np.ndarray], np.ndarray]) -> None:
+    """Replace, in place, the interpolated full-resolution ratio by ratio_at(points, normals) -> (N, 3) at the
+    seam_band pixels (needs inp.surface: without it nothing changes; pixels outside its window keep the
+    interpolated ratio)."""
+    band = seam_band(inp, near)
+    if band is not None:
+        set_seam(ratio, inp, band, ratio_at(inp.surface.vertex[band], inp.surface.normal[band]))
 
 
 def composite(camera: np.ndarray, layers: Layers) -> np.ndarray:

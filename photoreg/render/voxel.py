@@ -7,8 +7,8 @@ import numpy as np
 from photoreg.kernels.transfer import any_blocked, radiance_transfer
 from photoreg.lighting import sh
 from photoreg.lighting.parametric import ParametricLight, cone_directions
-from photoreg.render.composite import (Layers, RenderInput, at_stride, bounce, near_objects, refine_seam, shade,
-                                      shadow_ratio, stride_box, union_box, upsample_ratio)
+from photoreg.render.composite import (Layers, RenderInput, at_stride, bounce, near_objects, seam_band, set_seam,
+                                      shade, shadow_ratio, stride_box, union_box, upsample_ratio)
 
 
 CLOSE = 0.5  # the real surface within this share of the objects' size is what their blocked rays see
@@ -51,23 +51,29 @@ def _disc_shading(inp: RenderInput, light: ParametricLight | None, cone: np.ndar
 
 
 def _transfers(inp: RenderInput, F: np.ndarray, light, cone, points, normals):
-    """The ray pass at points: the SH transfer (R_TR, R_TRV) and the disc light's shading (composite units)."""
+    """The ray pass at points: the SH transfer R_TR, R_TRV and the disc light's shading under each (composite
+    units), four arrays of one row per point (every point's rays are its own: a pass over several point sets
+    at once gives each set what its own pass would)."""
     dirs, Y = inp.directions(sh.bands_of(F.shape[1]))
     t = radiance_transfer(inp.grid, points, normals, dirs, Y, inp.offset, inp.ray_length, virtual=inp.virtual)
-    return t, _disc_shading(inp, light, cone, points, normals)
+    return (t.transfer, t.transfer_rv, *_disc_shading(inp, light, cone, points, normals))
 
 
 def _shading(inp: RenderInput, F: np.ndarray, passes, l_real, l_virt):
-    """(S_TR, S_TRV) from a ray pass of _transfers: F's SH transfer with one bounce (composite.bounce)
-    plus the disc light."""
-    t, (d_tr, d_trv) = passes
-    s_tr, s_trv = bounce(F, inp.gain, t.transfer, t.transfer_rv, l_real, l_virt)
+    """(S_TR, S_TRV) from (rows of) a ray pass of _transfers: F's SH transfer with one bounce
+    (composite.bounce) plus the disc light."""
+    tr, trv, d_tr, d_trv = passes
+    s_tr, s_trv = bounce(F, inp.gain, tr, trv, l_real, l_virt)
     return s_tr + d_tr, s_trv + d_trv
+
+
+def _rows(passes, start: int, stop: int):
+    return tuple(a[start:stop] for a in passes)
 
 
 def render_voxel(inp: RenderInput) -> Layers:
     """R_TR / R_TRV in one ray pass at the real surface near the objects (lighting stride, interpolated
-    back; at full resolution along the objects' silhouettes, composite.refine_seam), and R_TRV at the
+    back; at full resolution along the objects' silhouettes, composite.seam_band), and R_TRV at the
     virtual pixels with real geometry occluding (real shadows on the object); one ambient bounce each way
     (composite.bounce). With light_rays > 0 the dominant light is split out of F
     (photoreg.lighting.parametric) and traced as a disc of that many rays: sharp shadows that a few SH bands
@@ -85,30 +91,39 @@ def render_voxel(inp: RenderInput) -> Layers:
     near = near_objects(maps, inp.bounds, inp.ray_length)
     l_real = real_radiance(inp, near)
     covered = _covered(inp)
-    on_object = _transfers(inp, F, light, cone, gb.position[gb.box][covered], gb.normal[gb.box][covered])
+    band = seam_band(inp, near)
+    # The real points whose shadow ratio is computed: the stride samples near the objects and the seam's pixels.
+    # Only those with a ray the objects block can change (R_TRV = R_TR elsewhere, ratio exactly 1): a cheap
+    # march of the small virtual grid along every ray of the passes finds them, and the real grid's march, the
+    # expensive one, runs at those alone (TUM with the bunny: 864 of the 2090 stride samples near it).
+    n_near = int(near.sum())
+    points, normals = maps.vertex[near], maps.normal[near]
+    if band is not None:
+        points = np.concatenate([points, inp.surface.vertex[band]])
+        normals = np.concatenate([normals, inp.surface.normal[band]])
+    rays = inp.directions(sh.bands_of(F.shape[1]))[0]
+    rays = rays if light is None else np.concatenate([rays, cone])
+    shadowed = any_blocked(inp.virtual, points, normals, rays, inp.offset, inp.ray_length)
+    # One ray pass for the object's pixels and the shadowed real points (few launches: each costs host time)
+    n_obj = int(covered.sum())
+    passes = _transfers(inp, F, light, cone, np.concatenate([gb.position[gb.box][covered], points[shadowed]]),
+                        np.concatenate([gb.normal[gb.box][covered], normals[shadowed]]))
+    on_object = _rows(passes, 0, n_obj)
     colour = _virtual_colour(inp, _shading(inp, F, on_object, l_real, l_real)[1], covered)
     l_virt = colour[gb.box][covered].mean(axis=0) if covered.any() else np.zeros(3, np.float32)
 
-    # Only points with a ray the objects block can change (R_TRV = R_TR elsewhere, ratio exactly 1): a cheap
-    # march of the small virtual grid along every ray of the passes finds them, and the real grid's march, the
-    # expensive one, runs at those alone (TUM with the bunny: 864 of the 2090 stride samples near it).
-    # shadow_ratio's eps guard then averages over those points only; on the TUM and demo frames measured the
-    # ratio was the same.
-    rays = inp.directions(sh.bands_of(F.shape[1]))[0]
-    rays = rays if light is None else np.concatenate([rays, cone])
-
-    def ratio_at(points: np.ndarray, normals: np.ndarray) -> np.ndarray:
-        ratio = np.ones((len(points), 3), np.float32)
-        shadowed = any_blocked(inp.virtual, points, normals, rays, inp.offset, inp.ray_length)
-        if shadowed.any():
-            p, n = points[shadowed], normals[shadowed]
-            ratio[shadowed] = shadow_ratio(*_shading(inp, F, _transfers(inp, F, light, cone, p, n), l_real, l_virt))
-        return ratio
-
+    # shadow_ratio's eps guard averages over the shadowed points of each set (stride samples, seam) apart
+    ratio_pts = np.ones((len(points), 3), np.float32)
+    k = n_obj + int(shadowed[:n_near].sum())
+    for rows, (lo, hi) in ((np.flatnonzero(shadowed[:n_near]), (n_obj, k)),
+                           (n_near + np.flatnonzero(shadowed[n_near:]), (k, n_obj + int(shadowed.sum())))):
+        if len(rows):
+            ratio_pts[rows] = shadow_ratio(*_shading(inp, F, _rows(passes, lo, hi), l_real, l_virt))
     ratio_s = np.ones(maps.vertex.shape, np.float32)
-    ratio_s[near] = ratio_at(maps.vertex[near], maps.normal[near])
+    ratio_s[near] = ratio_pts[:n_near]
     ratio = upsample_ratio(ratio_s, near, maps.stride, inp.camera.shape[:2])
-    refine_seam(ratio, inp, near, ratio_at)
+    if band is not None:
+        set_seam(ratio, inp, band, ratio_pts[n_near:])
     # What the object's blocked rays see is the real surface next to it, darkened by the object's own
     # shadow, not the mean of the whole neighbourhood: re-shade it with that (demo frames 10 and 20 against
     # the path tracer: the object's darkest third 24% -> 14% too bright at frame 10, the whole object at
