@@ -173,8 +173,9 @@ class Pipeline:
         would dilute them); with a history that own solve runs only on frames the search is due (a coarse
         pass, or a held light refined)."""
         with self._timed(t, "solve"):
-            own_terms = self._terms(current)
-            own = self._solve(current, previous, own_terms) if data is current or self._search_due() else None
+            alone = data is current or self._search_due()   # else the search needs no solution (Sun.due)
+            own_terms = self._terms(current) if alone else []
+            own = self._solve(current, previous, own_terms) if alone else None
             terms = own_terms if data is current else self._terms(data)
         sun = None
         if self.sun is not None:

@@ -68,6 +68,7 @@ def _shading(inp: RenderInput, F: np.ndarray, passes, l_real, l_virt):
 
 
 def _rows(passes, start: int, stop: int):
+    """Rows start:stop of every array of a _transfers pass."""
     return tuple(a[start:stop] for a in passes)
 
 
@@ -103,22 +104,22 @@ def render_voxel(inp: RenderInput) -> Layers:
         normals = np.concatenate([normals, inp.surface.normal[band]])
     rays = inp.directions(sh.bands_of(F.shape[1]))[0]
     rays = rays if light is None else np.concatenate([rays, cone])
-    shadowed = any_blocked(inp.virtual, points, normals, rays, inp.offset, inp.ray_length)
+    hit = np.flatnonzero(any_blocked(inp.virtual, points, normals, rays, inp.offset, inp.ray_length))
     # One ray pass for the object's pixels and the shadowed real points (few launches: each costs host time)
     n_obj = int(covered.sum())
-    passes = _transfers(inp, F, light, cone, np.concatenate([gb.position[gb.box][covered], points[shadowed]]),
-                        np.concatenate([gb.normal[gb.box][covered], normals[shadowed]]))
+    passes = _transfers(inp, F, light, cone, np.concatenate([gb.position[gb.box][covered], points[hit]]),
+                        np.concatenate([gb.normal[gb.box][covered], normals[hit]]))
     on_object = _rows(passes, 0, n_obj)
     colour = _virtual_colour(inp, _shading(inp, F, on_object, l_real, l_real)[1], covered)
     l_virt = colour[gb.box][covered].mean(axis=0) if covered.any() else np.zeros(3, np.float32)
 
     # shadow_ratio's eps guard averages over the shadowed points of each set (stride samples, seam) apart
     ratio_pts = np.ones((len(points), 3), np.float32)
-    k = n_obj + int(shadowed[:n_near].sum())
-    for rows, (lo, hi) in ((np.flatnonzero(shadowed[:n_near]), (n_obj, k)),
-                           (n_near + np.flatnonzero(shadowed[n_near:]), (k, n_obj + int(shadowed.sum())))):
-        if len(rows):
-            ratio_pts[rows] = shadow_ratio(*_shading(inp, F, _rows(passes, lo, hi), l_real, l_virt))
+    split = int(np.searchsorted(hit, n_near))   # hit is sorted: the stride samples' rows come first
+    for lo, hi in ((0, split), (split, len(hit))):
+        if hi > lo:
+            ratio_pts[hit[lo:hi]] = shadow_ratio(*_shading(inp, F, _rows(passes, n_obj + lo, n_obj + hi), l_real,
+                                                           l_virt))
     ratio_s = np.ones(maps.vertex.shape, np.float32)
     ratio_s[near] = ratio_pts[:n_near]
     ratio = upsample_ratio(ratio_s, near, maps.stride, inp.camera.shape[:2])
