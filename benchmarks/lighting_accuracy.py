@@ -77,7 +77,8 @@ START, END = "<!-- generated:start -->", "<!-- generated:end -->"
 
 
 def run(recording: Path, lighting: dict, frames: int, holdout: bool) -> dict:
-    """Process the first `frames` frames in-process; per-frame SH, diagnostics and solve times."""
+    """Process the first `frames` frames in-process; per-frame SH, diagnostics, solve times and the solve's
+    normal equations (None where a frame had no solve; benchmarks/observability.py)."""
     from photoreg.pipeline import Pipeline
 
     s = Session()
@@ -89,9 +90,11 @@ def run(recording: Path, lighting: dict, frames: int, holdout: bool) -> dict:
     pipe = Pipeline(s, rec.intrinsics)
     if holdout:
         pipe.solver_cfg = dataclasses.replace(pipe.solver_cfg, holdout_fraction=HOLDOUT)
-    out = {"sh": [], "diag": [], "solve_ms": []}
+    out = {"sh": [], "diag": [], "solve_ms": [], "system": []}
     for frame in iter_frames(rec, list(range(min(frames, len(rec))))):
+        pipe.last_solution = None
         r = pipe.process(frame)
+        out["system"].append(pipe.last_solution.system if pipe.last_solution is not None else None)
         out["sh"].append(r.lighting.sh)
         out["diag"].append(r.diagnostics)
         out["solve_ms"].append(r.timings_ms.get("solve", 0.0))

@@ -60,6 +60,7 @@ class Pipeline:
             from .recon.tracking import Tracker
             self.tracker = Tracker(self.volume, intrinsics, rc)
         self.prev_F: np.ndarray | None = None
+        self.last_solution = None  # the latest frame's robust Solution (its system: benchmarks/observability.py)
         # Extra terms (the bounce, the dominant light) only with fixed bands: order selection compares SH models.
         fixed = self.solver_cfg.select == "fixed"
         self.bounce = lc.bounce and fixed
@@ -237,6 +238,7 @@ class Pipeline:
                 data = self.history.with_current(current, kept) if self.history is not None else current
                 previous = self.filter.prediction() if self.filter is not None else self.prev_F
             sun, sol, own = self._lighting(grid, current, data, previous, t)
+            self.last_solution = sol
             with self._timed(t, "solve"):
                 F, diag = sol.lighting, sol.diagnostics
                 if sun is not None:

@@ -426,6 +426,27 @@ def test_current_system_holds_the_current_rows_alone():
     assert ratio(sol.current_system) > 1.3 * ratio(sol.system)                # measured 17.2 against 11.3
 
 
+def test_noise_free_fit_recovers_what_the_samples_observe():
+    """NormalEquations.noise_free_fit (benchmarks/observability.py's floor): over a spread of normals the fit of
+    data the light explains exactly recovers the light, closer the weaker the regularisation; on one plane it
+    recovers the irradiance at the plane's normal and leaves the directions the plane does not observe open."""
+    rng = np.random.default_rng(11)
+    cfg = SolverConfig(**dict(ROBUST, albedo="single"))
+    rad, tr, nrm, vis, _, light = scene(rng, n=1500)
+    system = solve(rad, tr, nrm, vis, cfg).system
+    L = light[:, :9]  # the system's 3 bands of the light
+    errors = [si_up(system.noise_free_fit(light, s), L) for s in (1.0, 0.01, 1e-6)]
+    assert errors[0] > errors[1] > errors[2] and errors[2] < 1e-6        # measured 0.0048, 5e-5, 5e-9
+    np.testing.assert_allclose(system.noise_free_fit(light, 1e-9), L, atol=1e-5 * np.abs(L).max())
+    np.testing.assert_allclose(system.noise_free_fit(2 * light), 2 * system.noise_free_fit(light), rtol=1e-9)
+    up = np.tile([0.0, 0.0, 1.0], (800, 1))
+    plane = sh.unoccluded_transfer(up, 3)
+    system = solve(plane @ L.T, plane, up, np.ones(800), cfg).system
+    fit = system.noise_free_fit(light, 1e-6)
+    np.testing.assert_allclose(sh.irradiance(fit, up[:1]), sh.irradiance(L, up[:1]), rtol=1e-6)
+    assert si_up(fit, L) > 0.1                                           # measured 0.22
+
+
 def test_filter_keeps_unobserved_directions_and_handles_empty_frames():
     rng = np.random.default_rng(9)
     light = sun_sky(bands=3)

@@ -118,6 +118,16 @@ class NormalEquations:
         eye = np.eye(self.G.shape[1])
         return (self.G + self.lam[:, None, None] * eye) / max(self.sigma2, 1e-300)
 
+    def noise_free_fit(self, L: np.ndarray, lam_scale: float = 1.0) -> np.ndarray:
+        """(3, K) the Tikhonov solution (G + s lam I)^-1 G L of this system (its samples, weights and albedos)
+        for data that lighting L (3, >= K) explains exactly, with the strength scaled by s = lam_scale: what
+        the fit can recover at best, since directions the samples do not observe stay at the prior (zero)."""
+        k = self.G.shape[1]
+        L = np.asarray(L, dtype=np.float64)[:, :k]
+        eye = np.eye(k)
+        return np.stack([np.linalg.lstsq(self.G[c] + lam_scale * self.lam[c] * eye, self.G[c] @ L[c], rcond=None)[0]
+                         for c in range(3)])
+
 
 @dataclass
 class Solution:
