@@ -34,6 +34,7 @@ import numpy as np  # noqa: E402
 from photoreg.bench import metrics  # noqa: E402
 from photoreg.bench.score import load_gt  # noqa: E402
 from photoreg.config import LightingConfig, Session  # noqa: E402
+from photoreg.io.atomic import write_text  # noqa: E402
 from photoreg.io.recording import iter_frames, open_recording  # noqa: E402
 from photoreg.synth.scenes import SCENE_KINDS  # noqa: E402
 
@@ -227,7 +228,7 @@ def main() -> int:
         text = text[:text.index(START)] + "\n".join(lines) + text[text.index(END) + len(END):]
     else:
         text = "# Lighting accuracy: paper solver vs robust solver (issue 4)\n\n" + "\n".join(lines) + "\n"
-    out.write_text(text)
+    write_text(out, text)
     print(f"wrote {out}")
     return 0
 

@@ -165,7 +165,7 @@ class Pipeline:
             return np.hstack([current.transfer[idx, :self.solver_cfg.fit_bands ** 2]] +
                              [t.transfer[idx, None] for t in terms])
 
-        return self.sun(trace, sol, current.radiance, design, current.normals)
+        return self.sun(trace, sol, current.radiance, design, current.normals, current.points)
 
     def _lighting(self, grid, current: Samples, data: Samples, previous, t: dict[str, float]):
         """(sun, solution, the current view's own solve or None): the lighting of the samples `data` (the

@@ -38,6 +38,11 @@ def visible(normals, axis, cos_r, dirs):
     return (normals @ dirs.T > 0) & (axis @ dirs.T <= cos_r[:, None])
 
 
+def scattered(n):
+    """World points on no common plane for abstract samples (their albedos are used as they are)."""
+    return np.random.default_rng(99).normal(size=(n, 3))
+
+
 def model_samples(rng, n=2500, sun_strength=3.0, albedos=((0.8, 0.8, 0.8), (0.6, 0.3, 0.2))):
     """Radiance under a 3-band sky plus a disc sun traced exactly, with its transfer, normals, sky SH and
     the occluders (the solve sees 5 bands)."""
@@ -111,7 +116,7 @@ def test_search_finds_the_sun_from_its_shadows_and_the_joint_solve_fits_it():
         return visible(normals[idx], axis[idx], cos_r[idx], dirs)
 
     sol = solve(radiance, transfer, normals, np.ones(len(normals)), cfg)
-    found = SunSearch(SunConfig())(trace, sol, radiance, lambda idx: transfer[idx], normals)
+    found = SunSearch(SunConfig())(trace, sol, radiance, lambda idx: transfer[idx], normals, scattered(len(normals)))
     assert found is not None and math.degrees(math.acos(min(1.0, found.direction @ SUN))) < 2.0
     assert found.gain > 0.3   # shadows the 5-band SH cannot hold
     disc = found.direction[None]
@@ -123,6 +128,42 @@ def test_search_finds_the_sun_from_its_shadows_and_the_joint_solve_fits_it():
     assert joint.diagnostics.residual_rms < 0.2 * sol.diagnostics.residual_rms
 
 
+def test_a_shadow_with_a_region_of_its_own_on_the_floor_still_reveals_the_sun():
+    """A floor lit by a sky and a sun, with the shadow of a ball that the camera does not see: the sky-tinted
+    shadow gets an albedo region of its own, whose albedo would explain the shadow away; the search scores
+    every sample on the floor's plane with the floor's albedo and finds the sun. With the same samples placed
+    off any common plane (the albedos as the regions have them) it does not."""
+    rng = np.random.default_rng(0)
+    n = 2500
+    points = np.column_stack([rng.uniform(-1, 1, (n, 2)), np.zeros(n)])
+    normals = np.tile([0.0, 0.0, 1.0], (n, 1))
+    centre, radius = np.array([0.0, 0.0, 0.3]), 0.2
+
+    def trace(idx, dirs):   # the ball blocks what it hits; the floor's hemisphere is all the rest
+        oc = points[idx] - centre
+        b = oc @ dirs.T
+        disc = b * b - ((oc * oc).sum(axis=1) - radius * radius)[:, None]
+        hit = (disc > 0) & (-b - np.sqrt(np.maximum(disc, 0.0)) > 0)
+        return (normals[idx] @ dirs.T > 0) & ~hit
+
+    every = np.arange(n)
+    vis = trace(every, QUAD).astype(np.float64)
+    transfer = (vis * np.clip(normals @ QUAD.T, 0, None)) @ QUAD_Y[:, :25] / math.pi
+    sky = np.zeros((3, 25))
+    sky[:, :9] = sh.project(QUAD, np.clip(QUAD[:, 2:3], 0, None) * [0.3, 0.4, 0.6] + 0.1,
+                            np.full(len(QUAD), 4 * math.pi / len(QUAD)), 3)
+    t_sun = direct_transfer(trace(every, SUN[None]), normals, SUN[None])[:, 0]
+    radiance = 0.8 * (transfer @ sky.T + np.outer(t_sun, [3.0, 2.7, 2.25]))
+    sol = solve(radiance, transfer, normals, vis.sum(axis=1) / (normals @ QUAD.T > 0).sum(axis=1),
+                SolverConfig(bands=5, **ROBUST), points=points)
+    shadowed = t_sun == 0
+    assert len(sol.albedo) == 2 and np.all(sol.labels[np.searchsorted(sol.samples, np.flatnonzero(shadowed))] == 1)
+    found = SunSearch(SunConfig())(trace, sol, radiance, lambda idx: transfer[idx], normals, points)
+    assert found is not None and math.degrees(math.acos(min(1.0, found.direction @ SUN))) < 2.0
+    off = SunSearch(SunConfig())(trace, sol, radiance, lambda idx: transfer[idx], normals, scattered(n))
+    assert off is None or math.degrees(math.acos(min(1.0, off.direction @ SUN))) > 20.0   # measured: 116 degrees
+
+
 def test_no_light_is_claimed_without_shadows():
     """A single plane (every normal up, nothing blocked): any direction's column is a multiple of band 0, so
     no light is claimed however the plane is lit."""
@@ -132,8 +173,9 @@ def test_no_light_is_claimed_without_shadows():
     transfer = sh.unoccluded_transfer(normals, 5)
     radiance = np.clip(0.5 + 0.01 * rng.normal(size=(n, 3)), 0.01, None)
     sol = solve(radiance, transfer, normals, np.ones(n), SolverConfig(bands=5, **ROBUST))
+    points = np.column_stack([np.random.default_rng(3).uniform(-1, 1, (n, 2)), np.zeros(n)])  # the plane z = 0
     found = SunSearch(SunConfig())(lambda idx, dirs: normals[idx] @ dirs.T > 0, sol, radiance,
-                                   lambda idx: transfer[idx], normals)
+                                   lambda idx: transfer[idx], normals, points)
     assert found is None
 
 
@@ -161,7 +203,8 @@ def test_a_light_that_reaches_only_a_few_samples_is_not_claimed():
             return out
 
         sol = solve(radiance, transfer, normals, np.ones(n + k), SolverConfig(bands=5, loss="huber", albedo="single"))
-        found = {share: SunSearch(SunConfig(min_lit=share))(trace, sol, radiance, lambda idx: transfer[idx], normals)
+        found = {share: SunSearch(SunConfig(min_lit=share))(trace, sol, radiance, lambda idx: transfer[idx], normals,
+                                                            scattered(n + k))
                  for share in (0.0, SunConfig().min_lit)}
         if strength == 0:
             assert found[0.0] is not None and found[0.0].direction @ down > 0.9
