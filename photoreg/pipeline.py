@@ -21,7 +21,7 @@ from .kernels.transfer import make_direction_set, radiance_transfer, visibility
 from .lighting import sh
 from .lighting.exposure import ExposureTracker
 from .lighting.history import Samples, SampleHistory
-from .lighting.robust import Term, bounce_term, solve
+from .lighting.robust import Solution, Term, bounce_term, solve
 from .lighting.samples import agreement
 from .lighting.solver import SolverConfig
 from .lighting.sun import Sun, SunConfig, SunSearch, disc_rays, sun_term
@@ -60,7 +60,7 @@ class Pipeline:
             from .recon.tracking import Tracker
             self.tracker = Tracker(self.volume, intrinsics, rc)
         self.prev_F: np.ndarray | None = None
-        self.last_solution = None  # the latest frame's robust Solution (its system: benchmarks/observability.py)
+        self.last_solution: Solution | None = None  # the latest frame's solve (benchmarks/observability.py)
         # Extra terms (the bounce, the dominant light) only with fixed bands: order selection compares SH models.
         fixed = self.solver_cfg.select == "fixed"
         self.bounce = lc.bounce and fixed
