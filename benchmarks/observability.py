@@ -8,7 +8,8 @@ the generator's true light explains exactly (NormalEquations.noise_free_fit): th
 misses, no amount of noise removal or better albedos recovers: those directions are not observed by the
 samples, and the regularisation keeps them at the prior. At 0.1 and 0.01 of the strength the floor shows what
 weaker regularisation could reach with perfect data. The floor is the SH design's: a traced light (sun) is
-part of the true light's SH, not a column of its own.
+part of the true light's SH, not a column of its own. It is optimistic where the fused normals are noisy: the
+noise-free data follow them, real radiance does not (benchmarks/observability.md, the plane).
 
   python benchmarks/observability.py [--synth-dir DIR] [--frames 12] [--size 320x240] [--spp 64]
       [--long-ray 3.0] [--out benchmarks/observability.md]
