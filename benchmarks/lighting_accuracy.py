@@ -131,12 +131,30 @@ def fmt(v, spec: str) -> str:
     return "-" if v is None else format(v, spec)
 
 
-def main() -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+def synth_arguments(description: str) -> argparse.ArgumentParser:
+    """A parser with the options of the generated recordings (folder, frames, size, samples per pixel)."""
+    ap = argparse.ArgumentParser(description=description)
     ap.add_argument("--synth-dir", default="/tmp/photoreg_bench")
     ap.add_argument("--frames", type=int, default=12)
     ap.add_argument("--size", default="320x240")
     ap.add_argument("--spp", type=int, default=64)
+    return ap
+
+
+def write_generated(out: Path, lines: list[str], title: str) -> None:
+    """Put `lines` (START ... END) into the report `out` in place of its generated part, keeping the hand-written
+    discussion around it; a new report gets `title` first. Written atomically."""
+    text = out.read_text() if out.is_file() else ""
+    if START in text and END in text:
+        text = text[:text.index(START)] + "\n".join(lines) + text[text.index(END) + len(END):]
+    else:
+        text = f"# {title}\n\n" + "\n".join(lines) + "\n"
+    write_text(out, text)
+    print(f"wrote {out}")
+
+
+def main() -> int:
+    ap = synth_arguments(__doc__.split("\n")[0])
     ap.add_argument("--real", default="/work/shared/data/recordings")
     ap.add_argument("--real-frames", type=int, default=20)
     ap.add_argument("--out", default=str(REPO / "benchmarks" / "lighting_accuracy.md"))
@@ -222,14 +240,7 @@ def main() -> int:
                 f"{c['direction_deg']:.1f} / {c['irradiance_si_rmse_upper']:.3f} / {c['flicker']:.3f}" for c in cells)
                 + f" | {mean[0]:.1f} / {mean[1]:.3f} / {mean[2]:.3f} |")
     lines += ["", "Recordings:"] + [f"- {label}: {origin}" for label, _, _, origin in cases + variants] + ["", END]
-    out = Path(args.out)
-    text = out.read_text() if out.is_file() else ""
-    if START in text and END in text:  # keep the hand-written discussion around the generated part
-        text = text[:text.index(START)] + "\n".join(lines) + text[text.index(END) + len(END):]
-    else:
-        text = "# Lighting accuracy: paper solver vs robust solver (issue 4)\n\n" + "\n".join(lines) + "\n"
-    write_text(out, text)
-    print(f"wrote {out}")
+    write_generated(Path(args.out), lines, "Lighting accuracy: paper solver vs robust solver (issue 4)")
     return 0
 
 

@@ -130,9 +130,9 @@ class GBufferRenderer:
             raise ValueError(f"GBufferRenderer.render: window {window} is not a pixel box of the {W}x{H} frame")
         h, w = y1 - y0, x1 - x0
         # Only the window is rasterised and read back, into a viewport of power-of-two sides at least its size
-        # (at most the frame's; the window in its top-left corner): EGL resizes its framebuffer only when that size changes, and
-        # OSMesa, which makes a context per size, gets a renderer per size of the few there are (TUM with the
-        # bunny on this CPU: 18-25 ms a frame for the whole 1280 x 960 supersampled frame before).
+        # (at most the frame's; the window in its top-left corner): EGL resizes its framebuffer only when that
+        # size changes, and OSMesa, which makes a context per size, gets a renderer per size of the few there
+        # are (TUM with the bunny on this CPU: 18-25 ms a frame for the whole 1280 x 960 supersampled frame before).
         if h > 0 and w > 0:
             vx, vy, size = x0 * s, y0 * s, (min(_pow2(w * s), W * s), min(_pow2(h * s), H * s))
         else:
