@@ -16,6 +16,9 @@
 #              history of samples (--no-history)
 #   blas       the solve's BLAS threads (OPENBLAS_NUM_THREADS 1, 4, 16) at stride 4 / 64 rays / 3 bands
 #              and on the demo with its traced light
+#   every      the lighting estimated on every n-th frame (lighting.every, --every): TUM alone and with the bunny
+#              at stride 4 / 64 rays / 3 bands, alone at stride 1 / 169 rays / 4 bands, the demo with its traced
+#              light; the settings alternate (calls differ by 20-40%); every run's figures into OUTDIR/every.json
 #   sweep      `photoreg bench sweep --device cuda` on SWEEP_SCENES (recordings with lighting_gt.json
 #              made here with `photoreg synth`); VOXELS (default 0.01,0.02) restricts it to fit one call
 set -euo pipefail
@@ -81,6 +84,17 @@ for step in "$@"; do
       python3 -m photoreg bench renderers --device cuda --synth-dir "$RENDER_SCENES" ${RENDER_ARGS:-} \
         --results-dir "$out/renderers" --md "$out/renderers/renderers.md" --plot "$out/renderers/renderers.png" || true
       ls "$out/renderers"/renderers_cuda.json ;;   # the rows; the report is redrawn where matplotlib is
+    every)
+      mkdir -p /tmp/every
+      for run in "bare 4 64 3 1" "bare 4 64 3 4" "bare 4 64 3 2" "bare 4 64 3 8" "bare 4 64 3 1" "bare 4 64 3 4" \
+                 "bunny 4 64 3 1" "bunny 4 64 3 4" "bunny 4 64 3 1" "bunny 4 64 3 4" "bare 1 169 4 1" \
+                 "bare 1 169 4 4" "demo 4 64 5 1" "demo 4 64 5 4"; do
+        set -- $run
+        src=$([ $1 = bare ] && echo "$rec" || ([ $1 = bunny ] && echo sessions/tum_fr1_rpy.toml || echo data/demo/session.toml))
+        python3 -m photoreg bench speed "$src" --device cuda --frames 0:30 --warmup 3 --stride $2 --rays $3 \
+          --bands $4 --every $5 --json "/tmp/every/$(ls /tmp/every | wc -l)_$1_s$2_n$5.json" 2>/dev/null
+      done
+      python3 -c "import json, pathlib, sys; fs = sorted(pathlib.Path('/tmp/every').glob('*.json'), key=lambda p: int(p.name.split('_')[0])); json.dump([dict(json.loads(f.read_text()), run=f.stem) for f in fs], open(sys.argv[1], 'w'), indent=1)" "$out/every.json" ;;
     sweep)
       # The CPU rows of benchmarks/speed_error.csv are kept: copy the merged table and plot back from OUTDIR.
       [ -f "$out/speed_error.csv" ] || cp benchmarks/speed_error.csv "$out/speed_error.csv"

@@ -31,6 +31,8 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--bands", type=int, help="SH bands B of the lighting (B*B coefficients)")
     p.add_argument("--voxel-size", type=float, help="TSDF voxel size in metres")
     p.add_argument("--ray-length", type=float, help="visibility ray length in metres")
+    p.add_argument("--every", type=int, help="estimate the lighting on every n-th frame; the frames between hold it "
+                                             "(lighting.every, default 1)")
     p.add_argument("--no-poses", action="store_true", help="ignore recorded poses and track the camera")
     p.add_argument("--shadows", choices=SHADOW_RENDERERS, help="shadow renderer (overrides [render] shadows)")
     p.add_argument("--video", action="store_true", help="also composite.mp4: the composites as a video "
@@ -102,6 +104,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--bands", type=int, help="SH bands B of the lighting (B*B coefficients)")
     p.add_argument("--voxel-size", type=float, help="TSDF voxel size in metres")
     p.add_argument("--ray-length", type=float, help="visibility ray length in metres")
+    p.add_argument("--every", type=int, help="ask the server to estimate the lighting on every n-th frame only")
     p.add_argument("--no-poses", action="store_true", help="ask the server to track the camera instead of "
                                                            "using recorded poses")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -119,6 +122,7 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--bands", type=int, default=3)
     b.add_argument("--voxel-size", type=float)
     b.add_argument("--ray-length", type=float)
+    b.add_argument("--every", type=int, default=1, help="estimate the lighting on every n-th frame (lighting.every)")
     b.add_argument("--threads", type=int, help="CPU threads for the split kernel launches (default: all cores)")
     b.add_argument("--no-sun", action="store_true", help="without the traced light (lighting.sun = false)")
     b.add_argument("--no-history", action="store_true", help="the current view's samples only (lighting.history = 0)")

@@ -82,6 +82,10 @@ class LightingConfig:
     # instead of joining as a new view (photoreg.lighting.history), so dense recordings keep distinct views;
     # 0 = every frame is a new view.
     history_view_deg: float = 10.0
+    # Estimate the lighting on every n-th frame with a pose (1: every frame). The frames between still fuse, ray
+    # cast and composite, with the latest estimate and their own exposure gain: the host-side solve sets the
+    # frame rate on a GPU (benchmarks/gpu.md), and a lighting change is followed at most n - 1 frames later.
+    every: int = 1
     exposure: bool = True         # per-frame gain against the fused radiance (auto-exposure)
     bounce: bool = True           # one bounce in the model: directions blocked by real geometry see radiance e
     sun: bool = True              # trace the dominant light apart from the SH (photoreg.lighting.sun; fixed bands)
@@ -262,6 +266,7 @@ def validate(s: Session) -> None:
               (L.max_depth_gap_voxels > 0, "lighting.max_depth_gap_voxels must be > 0"),
               (L.history >= 0, "lighting.history must be >= 0"),
               (L.history_view_deg >= 0, "lighting.history_view_deg must be >= 0"),
+              (L.every >= 1, "lighting.every must be >= 1"),
               (L.process_noise >= 0 and L.change_threshold > 0,
                "lighting.process_noise must be >= 0 and lighting.change_threshold > 0"),
               (0 < L.new_view_share <= 1, "lighting.new_view_share must be in (0, 1]"),

@@ -31,6 +31,7 @@ from .recon.fusion import FusionConfig, TSDFVolume
 from .types import Frame, FrameResult, Intrinsics, Lighting, SolveDiagnostics
 
 SAMPLE_SURPLUS = 1.5  # candidates checked per sample kept (the depth agreement test drops a few)
+GAIN_SAMPLES = 2000   # samples of a frame that holds the lighting (lighting.every): only its exposure gain
 
 
 class Pipeline:
@@ -61,6 +62,9 @@ class Pipeline:
             self.tracker = Tracker(self.volume, intrinsics, rc)
         self.prev_F: np.ndarray | None = None
         self.last_solution: Solution | None = None  # the latest frame's solve (benchmarks/observability.py)
+        # the latest estimate (frame index, lighting, diagnostics) and how many frames have held it (lighting.every)
+        self._held: tuple[int, Lighting, SolveDiagnostics] | None = None
+        self._held_for = 0
         # Extra terms (the bounce, the dominant light) only with fixed bands: order selection compares SH models.
         fixed = self.solver_cfg.select == "fixed"
         self.bounce = lc.bounce and fixed
@@ -87,11 +91,12 @@ class Pipeline:
             return None, [f"frame {frame.index}: no pose in the recording (use --no-poses to track)"]
         return frame.pose, []
 
-    def _samples(self, prep: Prepared, maps, pose: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def _samples(self, prep: Prepared, maps, pose: np.ndarray,
+                 cap: int | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Radiance (box average), world points and normals at usable sample pixels whose fused surface
-        agrees with the frame's depth (photoreg.lighting.samples): at most lighting.max_samples of them, a
-        random subset as the solve would take. Only a surplus of candidates is checked, so the cost does
-        not grow with the resolution (stride 1 at 640x480: 8000 samples of 300000 pixels)."""
+        agrees with the frame's depth (photoreg.lighting.samples): at most `cap` (default lighting.max_samples)
+        of them, a random subset as the solve would take. Only a surplus of candidates is checked, so the cost
+        does not grow with the resolution (stride 1 at 640x480: 8000 samples of 300000 pixels)."""
         lc = self.session.lighting
         st = lc.stride
         if st > 1:
@@ -103,7 +108,7 @@ class Pipeline:
             radiance, usable = prep.linear, prep.usable
         ws = maps.valid.shape[1]
         cand = np.flatnonzero(usable & maps.valid)
-        cap = self.solver_cfg.max_samples
+        cap = self.solver_cfg.max_samples if cap is None else cap
         rng = np.random.default_rng(self.solver_cfg.seed)
         if cap is not None and cand.size > cap * SAMPLE_SURPLUS:
             cand = np.sort(rng.choice(cand, int(cap * SAMPLE_SURPLUS), replace=False))
@@ -195,6 +200,68 @@ class Pipeline:
         with self._timed(t, "solve"):
             return sun, self._solve(data, previous, terms, current=len(current)), own
 
+    def _estimate_lighting(self, prep: Prepared, maps, pose: np.ndarray, grid,
+                           t: dict[str, float]) -> tuple[Lighting, SolveDiagnostics, float]:
+        """(lighting, diagnostics, exposure gain) of a frame: samples, transfer, solve, traced light, history,
+        temporal filter."""
+        lc, rc = self.session.lighting, self.session.reconstruction
+        with self._timed(t, "sample"):
+            radiance, points, normals = self._samples(prep, maps, pose)
+        with self._timed(t, "transfer"):
+            traced, kept = self._traced(len(points))
+            tr = radiance_transfer(grid, points[traced], normals[traced], self.dirs, self.Y,
+                                   offset=lc.ray_offset_voxels * rc.voxel_size, ray_length=lc.ray_length)
+        with self._timed(t, "solve"):
+            gain = self.exposure.gain(points, radiance)[0] if self.exposure is not None else 1.0
+            current = Samples(radiance[traced] / gain, tr.transfer, normals[traced], points[traced],
+                              tr.visible_fraction)
+            data = self.history.with_current(current, kept) if self.history is not None else current
+            previous = self.filter.prediction() if self.filter is not None else self.prev_F
+        sun, sol, own = self._lighting(grid, current, data, previous, t)
+        self.last_solution = sol
+        with self._timed(t, "solve"):
+            F, diag = sol.lighting, sol.diagnostics
+            if sun is not None:
+                diag.sun = {"direction": np.round(sun.direction, 6).tolist(), "angle": sun.angle,
+                            "irradiance": np.round(sol.terms["sun"], 7).tolist(), "gain": round(sun.gain, 5)}
+            if "bounce" in sol.terms:
+                diag.bounce_radiance = np.round(sol.terms["bounce"], 7).tolist()
+            diag.exposure_gain = gain
+            new_view = False   # whether the history took this frame's samples as a new view
+            if self.history is not None:  # keep the view's samples its own solve fitted, if enough
+                # without an own solve: those the solve of the current and kept samples fitted (the current
+                # view's rows come first; every usable sample instead cost TUM's held-out residual 0.226 -> 0.238)
+                fit = own if own is not None else sol
+                rows = (np.zeros(0, dtype=np.int64) if fit.samples is None else
+                        fit.samples[(fit.samples < len(current)) & (fit.weights > 0)])
+                cfg = self.solver_cfg
+                if rows.size >= cfg.min_samples_factor * cfg.fit_bands ** 2:
+                    new_view = self.history.add(current.take(rows), pose)
+                elif data is not current:  # a black, saturated or hole-ridden view
+                    diag.weak = True
+                    diag.notes.append("too few usable samples in this view: the lighting rests on earlier "
+                                      "views' samples")
+            if self.filter is not None:
+                filtered, diag.change_detected = self.filter.update(sol, new_view)
+                F = Lighting(filtered)
+            if self.exposure is not None:
+                self.exposure.update(points, radiance / gain)
+        return F, diag, gain
+
+    def _hold(self, prep: Prepared, maps, pose: np.ndarray,
+              t: dict[str, float]) -> tuple[Lighting, SolveDiagnostics, float]:
+        """(lighting, diagnostics, exposure gain) of a frame between estimates (lighting.every): the latest
+        estimate, with this frame's exposure gain (the composite is in this frame's exposure)."""
+        index, F, held = self._held
+        gain = 1.0
+        if self.exposure is not None:
+            with self._timed(t, "sample"):
+                radiance, points, _ = self._samples(prep, maps, pose, GAIN_SAMPLES)
+                gain = self.exposure.gain(points, radiance)[0]
+        note = f"lighting of frame {index} held (lighting.every = {self.session.lighting.every})"
+        diag = dataclasses.replace(held, notes=[note] + held.notes, exposure_gain=gain, change_detected=False)
+        return Lighting(F.sh.copy()), diag, gain
+
     def process(self, frame: Frame) -> FrameResult:
         """Run every stage on one frame; a weak or empty frame still yields a finite estimate."""
         t: dict[str, float] = {}
@@ -217,55 +284,23 @@ class Pipeline:
     def estimate(self, frame: Frame, prep: Prepared, pose: np.ndarray | None, notes: list[str],
                  t: dict[str, float], t_start: float | None = None) -> FrameResult:
         """Ray cast, transfer, solve (and render) on the fused volume for an observed frame; ms into t,
-        t["total"] measured from t_start (default: now)."""
+        t["total"] measured from t_start (default: now). Between estimates (lighting.every) the latest one is
+        held: no transfer or solve, the ray cast only where the render stage or the exposure gain needs it."""
         lc, rc = self.session.lighting, self.session.reconstruction
         t_all = time.perf_counter() if t_start is None else t_start
         F, diag, composite = None, None, None
         if pose is not None:
-            with self._timed(t, "raycast"):
-                grid = self.volume.dense_grid()
-                maps = raycast_surface(grid, self.intrinsics, pose, rc.depth_min, rc.depth_max, stride=lc.stride)
-            with self._timed(t, "sample"):
-                radiance, points, normals = self._samples(prep, maps, pose)
-            with self._timed(t, "transfer"):
-                traced, kept = self._traced(len(points))
-                tr = radiance_transfer(grid, points[traced], normals[traced], self.dirs, self.Y,
-                                       offset=lc.ray_offset_voxels * rc.voxel_size, ray_length=lc.ray_length)
-            with self._timed(t, "solve"):
-                gain = self.exposure.gain(points, radiance)[0] if self.exposure is not None else 1.0
-                current = Samples(radiance[traced] / gain, tr.transfer, normals[traced], points[traced],
-                                  tr.visible_fraction)
-                data = self.history.with_current(current, kept) if self.history is not None else current
-                previous = self.filter.prediction() if self.filter is not None else self.prev_F
-            sun, sol, own = self._lighting(grid, current, data, previous, t)
-            self.last_solution = sol
-            with self._timed(t, "solve"):
-                F, diag = sol.lighting, sol.diagnostics
-                if sun is not None:
-                    diag.sun = {"direction": np.round(sun.direction, 6).tolist(), "angle": sun.angle,
-                                "irradiance": np.round(sol.terms["sun"], 7).tolist(), "gain": round(sun.gain, 5)}
-                if "bounce" in sol.terms:
-                    diag.bounce_radiance = np.round(sol.terms["bounce"], 7).tolist()
-                diag.exposure_gain = gain
-                new_view = False   # whether the history took this frame's samples as a new view
-                if self.history is not None:  # keep the view's samples its own solve fitted, if enough
-                    # without an own solve: those the solve of the current and kept samples fitted (the current
-                    # view's rows come first; every usable sample instead cost TUM's held-out residual 0.226 -> 0.238)
-                    fit = own if own is not None else sol
-                    rows = (np.zeros(0, dtype=np.int64) if fit.samples is None else
-                            fit.samples[(fit.samples < len(current)) & (fit.weights > 0)])
-                    cfg = self.solver_cfg
-                    if rows.size >= cfg.min_samples_factor * cfg.fit_bands ** 2:
-                        new_view = self.history.add(current.take(rows), pose)
-                    elif data is not current:  # a black, saturated or hole-ridden view
-                        diag.weak = True
-                        diag.notes.append("too few usable samples in this view: the lighting rests on earlier "
-                                          "views' samples")
-                if self.filter is not None:
-                    filtered, diag.change_detected = self.filter.update(sol, new_view)
-                    F = Lighting(filtered)
-                if self.exposure is not None:
-                    self.exposure.update(points, radiance / gain)
+            hold = self._held is not None and self._held_for + 1 < lc.every
+            if not hold or self.render is not None or self.exposure is not None:
+                with self._timed(t, "raycast"):
+                    grid = self.volume.dense_grid()
+                    maps = raycast_surface(grid, self.intrinsics, pose, rc.depth_min, rc.depth_max, stride=lc.stride)
+            if hold:
+                self._held_for += 1
+                F, diag, gain = self._hold(prep, maps, pose, t)
+            else:
+                F, diag, gain = self._estimate_lighting(prep, maps, pose, grid, t)
+                self._held, self._held_for = (frame.index, F, dataclasses.replace(diag, notes=list(diag.notes))), 0
             if self.render is not None:
                 with self._timed(t, "render"):
                     composite = self.render(prep.linear, prep.depth, grid, maps, pose, F.sh, gain, diag.sun)

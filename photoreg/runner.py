@@ -43,6 +43,7 @@ def session_from_args(args) -> Session:
         s.output.video = True
     for opt, section, key in (("stride", "lighting", "stride"), ("rays", "lighting", "rays"),
                               ("bands", "lighting", "bands"), ("ray_length", "lighting", "ray_length"),
+                              ("every", "lighting", "every"),
                               ("voxel_size", "reconstruction", "voxel_size"), ("shadows", "render", "shadows")):
         v = getattr(args, opt)
         if v is not None:

@@ -4,12 +4,13 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
 from photoreg.cli import main
-from photoreg.config import LightingConfig, load_session
+from photoreg.config import LightingConfig, load_session, validate
 from photoreg.recon.tracking import ate_rmse
 from photoreg.runner import run_session
 
@@ -98,3 +99,62 @@ def test_ate_is_zero_for_a_rigidly_moved_copy_and_measures_noise():
     assert 0.005 < ate_rmse(noisy, gt)[0] < 0.02
     with pytest.raises(ValueError):
         ate_rmse({0: np.eye(4)}, gt)
+
+
+def test_lighting_every_holds_the_estimate_between_estimates(tmp_path, monkeypatch):
+    """lighting.every = 3: frames 0 and 3 are solved, the frames between hold the latest estimate exactly (no
+    transfer, no solve) with their own exposure gain: frame 4, exposed at half the linear radiance, is composited
+    in its own exposure."""
+    import dataclasses
+
+    import photoreg.pipeline as pipeline_module
+    from photoreg.config import Session
+    from photoreg.io.images import linear_to_srgb, srgb_to_linear
+    from photoreg.io.recording import iter_frames, open_recording
+    from photoreg.types import Intrinsics
+    from scenes import write_recording
+
+    k = Intrinsics(64, 48, 56.0, 56.0, 31.5, 23.5, 5000.0)
+    rec = open_recording(write_recording(tmp_path / "rec", k, 6, with_gt=False))
+    solved, solve = [], pipeline_module.solve
+
+    def counted(*args, **kwargs):
+        solved.append(True)
+        return solve(*args, **kwargs)
+
+    monkeypatch.setattr(pipeline_module, "solve", counted)
+    s = Session(device="cpu")
+    s.lighting.rays, s.lighting.stride, s.lighting.sun, s.lighting.every = 16, 2, False, 3
+    pipe = pipeline_module.Pipeline(s, rec.intrinsics)
+    results, calls = [], []
+    for frame in iter_frames(rec, range(6)):
+        if frame.index == 4:
+            frame = dataclasses.replace(frame, color=linear_to_srgb(0.5 * srgb_to_linear(frame.color)))
+        results.append(pipe.process(frame))
+        calls.append(len(solved))
+    assert calls == [1, 1, 1, 2, 2, 2], calls
+    for r in results:
+        held = r.index % 3 != 0
+        source = results[r.index - r.index % 3]
+        assert ("solve" in r.timings_ms, "transfer" in r.timings_ms) == (not held, not held)
+        if held:
+            assert np.array_equal(r.lighting.sh, source.lighting.sh)
+            assert r.diagnostics.notes[0] == f"lighting of frame {source.index} held (lighting.every = 3)"
+            assert r.diagnostics.bands == source.diagnostics.bands
+    assert not np.array_equal(results[3].lighting.sh, results[0].lighting.sh)
+    gains = [r.diagnostics.exposure_gain for r in results]
+    assert abs(gains[4] - 0.5) < 0.1 and all(abs(g - 1) < 0.1 for i, g in enumerate(gains) if i != 4), gains
+    s.lighting.every = 0
+    with pytest.raises(ValueError, match="lighting.every"):
+        validate(s)
+
+
+def test_composites_on_frames_that_hold_the_lighting(tmp_path):
+    """The demo with its object and --every 2: every frame is composited, the held frame 1 from its own view."""
+    out = tmp_path / "demo"
+    assert main(["demo", "--out", str(out), "--frames", "0:3", "--rays", "16", "--every", "2", "--quiet"]) == 0
+    records = read_jsonl(out / "lighting.jsonl")
+    assert ["solve" in r["timings_ms"] for r in records] == [True, False, True]
+    assert all("render" in r["timings_ms"] for r in records)
+    shots = [cv2.imread(str(out / "composite" / f"{i:06d}.png")) for i in range(3)]
+    assert all(x is not None for x in shots) and np.abs(shots[1].astype(int) - shots[0]).mean() > 1

@@ -52,7 +52,7 @@ def bench_recording(session: Session, warmup: int = 2) -> dict:
             timings.append(r.timings_ms)
         print(f"\rbench: frame {k + 1}/{len(indices)}", end="", file=sys.stderr, flush=True)
     print(file=sys.stderr)
-    stages = list(timings[0])
+    stages = list(dict.fromkeys(s for t in timings for s in t))   # frames holding the lighting skip stages
     L = session.lighting
     return {
         "device": pipe.device, "device_name": device_name(pipe.device),
@@ -61,11 +61,11 @@ def bench_recording(session: Session, warmup: int = 2) -> dict:
         "threads": cpu_threads() if pipe.device == "cpu" else 0,
         "size": f"{rec.intrinsics.width}x{rec.intrinsics.height}", "frames_timed": len(timings),
         "stride": L.stride, "rays": L.rays, "bands": L.bands, "voxel_size": session.reconstruction.voxel_size,
-        "ray_length": L.ray_length, "sun": L.sun, "bounce": L.bounce, "history": L.history,
+        "ray_length": L.ray_length, "every": L.every, "sun": L.sun, "bounce": L.bounce, "history": L.history,
         "objects": len(session.objects), "shadows": session.render.shadows if session.objects else None,
-        "ms_mean": {s: round(float(np.mean([t[s] for t in timings])), 3) for s in stages},
-        "ms_p95": {s: round(float(np.percentile([t[s] for t in timings], 95)), 3) for s in stages},
-        "ms_median": {s: round(float(np.median([t[s] for t in timings])), 3) for s in stages},
+        "ms_mean": {s: round(float(np.mean([t.get(s, 0.0) for t in timings])), 3) for s in stages},
+        "ms_p95": {s: round(float(np.percentile([t.get(s, 0.0) for t in timings], 95)), 3) for s in stages},
+        "ms_median": {s: round(float(np.median([t.get(s, 0.0) for t in timings])), 3) for s in stages},
         "frames_per_s": round(1000.0 / float(np.mean([t["total"] for t in timings])), 3),
         # the typical frame: one slow frame (a first allocation, a kernel built late) moves the mean only
         "frames_per_s_median": round(1000.0 / float(np.median([t["total"] for t in timings])), 3),
@@ -90,6 +90,7 @@ def speed_command(args) -> int:
     if args.ray_length:
         s.lighting.ray_length = args.ray_length
     s.lighting.sun, s.lighting.bounce = not args.no_sun, not args.no_bounce
+    s.lighting.every = args.every
     if args.no_history:
         s.lighting.history = 0
     validate(s)
@@ -97,7 +98,7 @@ def speed_command(args) -> int:
     stages = "  ".join(f"{k} {v:.1f}" for k, v in res["ms_mean"].items())
     render = f", {res['objects']} object(s) inserted ({res['shadows']})" if res["objects"] else ", no objects"
     print(f"{res['device_name']} ({res['device']}, {res['threads']} CPU threads), {res['size']} stride {res['stride']} rays {res['rays']} "
-          f"bands {res['bands']}, sun {res['sun']}, bounce {res['bounce']}, history {res['history']}{render}: "
+          f"bands {res['bands']}, every {res['every']}, sun {res['sun']}, bounce {res['bounce']}, history {res['history']}{render}: "
           f"{res['frames_per_s']} frames/s (median frame: {res['frames_per_s_median']})\n  mean ms: {stages}")
     if args.json_out:
         write_json(args.json_out, res)

@@ -234,7 +234,7 @@ def stream_command(args) -> int:
     if not indices:
         raise ValueError(f"{args.recording}: no frames selected (recording has {len(rec)}, --frames {args.frames!r})")
     lighting = {k: v for k, v in (("bands", args.bands), ("rays", args.rays), ("stride", args.stride),
-                                  ("ray_length", args.ray_length)) if v is not None}
+                                  ("ray_length", args.ray_length), ("every", args.every)) if v is not None}
     options: dict = {"lighting": lighting} if lighting else {}
     if args.voxel_size is not None:
         options["reconstruction"] = {"voxel_size": args.voxel_size}
