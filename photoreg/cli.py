@@ -87,6 +87,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--idle-timeout", type=float, default=300.0,
                    help="close a connection after this many seconds without a message (0: never)")
     p.add_argument("--max-message-mb", type=float, default=32.0, help="largest message accepted, MiB")
+    p.add_argument("--meshes", help="folder of meshes that clients' virtual objects may name (by file name); "
+                                    "their composites are sent back (default: no objects)")
 
     p = sub.add_parser("stream", help="replay a recording through a photoreg server; save its replies")
     p.add_argument("recording", help="recording folder (format autodetected)")
@@ -105,6 +107,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--voxel-size", type=float, help="TSDF voxel size in metres")
     p.add_argument("--ray-length", type=float, help="visibility ray length in metres")
     p.add_argument("--every", type=int, help="ask the server to estimate the lighting on every n-th frame only")
+    p.add_argument("--session", help="ask for what `photoreg run SESSION` does: the session file's [lighting], "
+                                     "[render] and [[objects]] (meshes named by file name in the server's --meshes)")
+    p.add_argument("--composite", choices=["jpeg", "png"], help="encoding of the composites the server sends for "
+                                                                "objects (default jpeg; png: lossless)")
     p.add_argument("--no-poses", action="store_true", help="ask the server to track the camera instead of "
                                                            "using recorded poses")
     p.add_argument("--quiet", action="store_true", help="no progress bar")

@@ -44,8 +44,10 @@ COMMANDS: dict[str, tuple[str, dict]] = {
     "photoreg synth corner --out gen/corner --env $PHOTOREG_DATA/hdr/grace.hdr --yaw 30": ("run", TINY_SYNTH),
     "photoreg run gen/tabletop --out out/tabletop": ("run", SMALL),
     "photoreg score out/tabletop --gt gen/tabletop": ("run", {}),
-    "photoreg serve --host 127.0.0.1 --port 8765 [--token T]": ("serve", {}),
+    "photoreg serve --host 127.0.0.1 --port 8765 --meshes data/demo [--token T]": ("serve", {}),
     "photoreg stream path/to/recording --url ws://127.0.0.1:8765 --out out/stream": ("stream", SMALL),
+    "photoreg stream data/demo --url ws://127.0.0.1:8765 --session data/demo/session.toml --out out/live":
+        ("stream", SMALL),
     "docker build -f docker/Dockerfile -t photoreg:cpu .": ("docker", {}),
     "docker build -f docker/Dockerfile.cuda -t photoreg:cuda .": ("docker", {}),
     'docker run --rm -v "$PWD/data:/data:ro" -v "$PWD/out:/out" photoreg:cpu run /data/demo --out /out/demo':

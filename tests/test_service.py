@@ -25,12 +25,14 @@ from websockets.exceptions import ConnectionClosed
 from websockets.sync.client import connect as ws_connect
 
 from photoreg.cli import main
-from photoreg.config import Session
+from photoreg.config import Session, load_session
 from photoreg.io.recording import open_recording
 from photoreg.pipeline import Pipeline
 from photoreg.service.client import Client, ServiceClosed, connect, replay
-from photoreg.service.protocol import (CLIENT_TYPES, ERROR_CODES, Limits, ProtocolError, decode, decode_frame, encode,
-                                       encode_frame, hello_message, lighting_message, parse_hello,
+from photoreg.io.images import linear_to_srgb
+from photoreg.service.protocol import (CLIENT_TYPES, ERROR_CODES, Limits, ProtocolError, composite_message, decode,
+                                       decode_composite, decode_frame, encode, encode_composite, encode_frame,
+                                       hello_message, lighting_message, parse_hello, ready_message,
                                        record_from_lighting)
 from photoreg.service.server import ServerConfig, ServerThread
 from photoreg.types import Frame, Intrinsics
@@ -73,7 +75,7 @@ def test_frame_encodings_round_trip(recording):
 
 def test_text_messages_round_trip():
     hello = parse_hello(decode(encode(hello_message(K, OPTIONS, "tok")))[0], "cpu", Limits())
-    assert hello.intrinsics == K and hello.token == "tok" and hello.version == "1.0"
+    assert hello.intrinsics == K and hello.token == "tok" and hello.version == "1.1" and hello.composite == "jpeg"
     assert (hello.session.lighting.bands, hello.session.lighting.rays, hello.session.lighting.stride) == (2, 16, 4)
     assert hello.session.reconstruction.voxel_size == 0.02 and hello.session.device == "cpu"
     record = {"frame": 3, "timestamp": 1.5, "bands": 1, "sh": [[1.0]] * 3, "dominant_direction": [0, 0, 1],
@@ -83,10 +85,48 @@ def test_text_messages_round_trip():
     assert record_from_lighting(msg) == record
 
 
-def test_objects_accepted_but_not_composited():
-    obj = {"mesh": "bunny", "position": [0, 0, 0], "rotation": [0, 0, 90], "scale": 0.1, "albedo": [0.8, 0.8, 0.8]}
-    hello = parse_hello(hello_message(K, {"objects": [obj], "render": {"shadows": "shadowmap"}}), "cpu", Limits())
-    assert len(hello.session.objects) == 1 and "not composited" in hello.notes[0]
+def test_objects_name_meshes_in_the_server_s_folder(tmp_path):
+    """An object's mesh is a file name in the server's mesh folder, never a path; no folder, no objects."""
+    (tmp_path / "meshes").mkdir()
+    (tmp_path / "meshes" / "bunny.obj").write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n")
+    (tmp_path / "secret.obj").write_text("v 0 0 0\n")
+    obj = {"mesh": "bunny.obj", "position": [0, 0, 0], "rotation": [0, 0, 90], "scale": 0.1, "albedo": [0.8, 0.8, 0.8]}
+
+    def hello(mesh, meshes=tmp_path / "meshes", **extra):
+        msg = {**hello_message(K, {"objects": [{**obj, "mesh": mesh}], "render": {"shadows": "shadowmap"}}), **extra}
+        return parse_hello(msg, "cpu", Limits(), meshes)
+
+    h = hello("bunny.obj", composite="png")
+    assert h.session.objects[0].mesh == str(tmp_path / "meshes" / "bunny.obj") and h.composite == "png"
+    ready = ready_message(h, "cpu", 2, Limits())
+    assert ready["compositing"] is True and ready["settings"]["composite"] == "png"
+    assert ready_message(parse_hello(hello_message(K, OPTIONS), "cpu", Limits()), "cpu", 2, Limits())[
+        "compositing"] is False
+    for mesh, says in (("../secret.obj", "file name"), (str(tmp_path / "secret.obj"), "file name"),
+                       (".hidden", "file name"), ("rabbit.obj", "it has: bunny.obj")):
+        with pytest.raises(ProtocolError, match=re.escape(says)) as e:
+            hello(mesh)
+        assert e.value.code == "bad_field" and "objects[0].mesh" in e.value.message
+    with pytest.raises(ProtocolError, match="no mesh folder"):
+        hello("bunny.obj", meshes=None)
+    with pytest.raises(ProtocolError, match="hello.composite"):
+        hello("bunny.obj", composite="gif")
+    with pytest.raises(ValueError, match="not a folder"):
+        ServerConfig(meshes=str(tmp_path / "missing"))
+
+
+def test_composite_messages_round_trip():
+    linear = np.random.default_rng(0).random((6, 8, 3)).astype(np.float32)
+    for encoding in ("png", "jpeg"):
+        header, payload = decode(composite_message(4, encode_composite(linear, encoding), encoding))
+        index, enc, image = decode_composite(header, payload)
+        got = cv2.cvtColor(cv2.imdecode(np.frombuffer(image, np.uint8), cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB)
+        assert (index, enc, header["type"]) == (4, encoding, "composite") and got.shape == (6, 8, 3)
+        if encoding == "png":
+            np.testing.assert_array_equal(got, linear_to_srgb(linear))
+    with pytest.raises(ProtocolError, match="composite.image.encoding"):
+        decode_composite({"type": "composite", "frame": 1, "image": {"encoding": "gif", "offset": 0, "length": 0}},
+                         memoryview(b""))
 
 
 def raw_message(header: dict, payload: bytes) -> bytes:
@@ -230,6 +270,28 @@ def test_replay_matches_direct_pipeline(server, recording, tmp_path):
         np.testing.assert_allclose(r["sh"], sh, atol=2e-7)
 
 
+def test_streamed_composites_equal_the_direct_pipeline_s(tmp_path):
+    """`photoreg stream data/demo --session data/demo/session.toml --composite png` through a server whose mesh
+    folder holds the demo's object: each frame's composite arrives (after its lighting) and equals, pixel for
+    pixel, what the pipeline composites in-process for that session (photoreg run's composite/NNNNNN.png)."""
+    demo = REPO / "data" / "demo"
+    with ServerThread(ServerConfig(port=0, device="cpu", idle_timeout=60, meshes=str(demo))) as running:
+        out = tmp_path / "out"
+        assert main(["stream", str(demo), "--url", running.server.url, "--out", str(out), "--session",
+                     str(demo / "session.toml"), "--frames", "0:3", "--rays", "16", "--composite", "png",
+                     "--quiet"]) == 0
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["composites"] == 3 and summary["settings"]["composite"] == "png" and not summary["errors"]
+    s = load_session(demo / "session.toml")
+    s.device, s.lighting.rays, s.reconstruction.block_count = "cpu", 16, ServerConfig().block_count
+    rec = open_recording(demo)
+    pipe = Pipeline(s, rec.intrinsics)
+    for i in range(3):
+        composite = pipe.process(rec.frame(i)).composite
+        got = cv2.cvtColor(cv2.imread(str(out / "composite" / f"{i:06d}.png")), cv2.COLOR_BGR2RGB)
+        np.testing.assert_array_equal(got, linear_to_srgb(composite))
+
+
 def test_four_concurrent_clients(server, recording, tmp_path):
     results: dict[int, tuple] = {}
 
@@ -338,10 +400,10 @@ def test_messages_out_of_order_and_versions(server, recording):
         assert json.loads(ws.recv(10))["code"] == "not_ready"
         ws.send(encode({**hello_message(K, OPTIONS), "version": "2.0"}))
         err = json.loads(ws.recv(10))
-        assert err["code"] == "version" and "1.0" in err["message"]
+        assert err["code"] == "version" and "1.1" in err["message"]
         ws.send(encode(hello_message(K, OPTIONS)))
         ready = json.loads(ws.recv(60))
-        assert ready["type"] == "ready" and ready["version"] == "1.0" and ready["compositing"] is False
+        assert ready["type"] == "ready" and ready["version"] == "1.1" and ready["compositing"] is False
         ws.send(encode(hello_message(K, OPTIONS)))
         assert json.loads(ws.recv(10))["code"] == "already_ready"
         ws.send(frame_bytes)

@@ -1,9 +1,10 @@
-"""Client of `photoreg serve` (protocol 1.0, docs/protocol.md) and `photoreg stream`.
+"""Client of `photoreg serve` (protocol 1.1, docs/protocol.md) and `photoreg stream`.
 
 `connect()` opens a session (hello -> ready) over websockets' synchronous client; `send_frame()`
 returns at once and replies arrive in order through `recv()` / `poll()`, so a plain loop can keep
 several frames in flight. `replay()` streams a recording's frames through a client and collects the
-lighting records; `photoreg stream` saves them like `photoreg run` (OUT/lighting.jsonl, summary.json).
+lighting records (and the composites of a session with objects); `photoreg stream` saves them like
+`photoreg run` (OUT/lighting.jsonl, summary.json, composite/).
 """
 from __future__ import annotations
 
@@ -22,9 +23,10 @@ from websockets.exceptions import ConnectionClosed, InvalidHandshake, InvalidURI
 from websockets.sync.client import ClientConnection
 from websockets.sync.client import connect as ws_connect
 
-from ..io.atomic import write_json
+from ..io.atomic import atomic_path, write_json
 from ..types import Frame, Intrinsics
-from .protocol import ProtocolError, decode, encode, encode_frame, hello_message, record_from_lighting
+from .protocol import (CLIENT_RECONSTRUCTION_KEYS, ProtocolError, decode, decode_composite, encode, encode_frame,
+                       hello_message, record_from_lighting)
 
 
 class ServiceClosed(RuntimeError):
@@ -51,14 +53,18 @@ class Client:
         return index
 
     def recv(self, timeout: float | None = None) -> dict | None:
-        """Next reply (lighting, error, bye, ...), or None when none came within `timeout` seconds."""
+        """Next reply (lighting, composite, error, bye, ...), or None when none came within `timeout` seconds. A
+        binary reply (composite) carries its payload bytes under "payload" (protocol.decode_composite reads it)."""
         try:
             data = self.ws.recv(timeout)
         except TimeoutError:
             return None
         except ConnectionClosed as e:
             raise self._closed(e) from None
-        return decode(data)[0]
+        header, payload = decode(data)
+        if len(payload):
+            header["payload"] = bytes(payload)
+        return header
 
     def poll(self) -> list[dict]:
         """Every reply that has already arrived, without waiting."""
@@ -100,9 +106,10 @@ class Client:
 
 
 def connect(url: str, intrinsics: Intrinsics, options: dict | None = None, token: str | None = None,
-            timeout: float = 60.0) -> Client:
+            timeout: float = 60.0, composite: str | None = None) -> Client:
     """Open a session: hello with the camera and options (keyed like a session file: lighting,
-    reconstruction, render, objects, track), wait for ready. An error reply raises ProtocolError."""
+    reconstruction, render, objects, track) and the composites' encoding (jpeg or png; the server's default
+    jpeg when None), wait for ready. An error reply raises ProtocolError."""
     try:
         # Entered, not called: the way to keep a connection across websockets versions; Client.close() closes it.
         ws = ws_connect(url, open_timeout=timeout, max_size=64 * 2**20, compression=None, close_timeout=5).__enter__()
@@ -110,7 +117,7 @@ def connect(url: str, intrinsics: Intrinsics, options: dict | None = None, token
         raise RuntimeError(f"{url}: cannot connect to a photoreg server ({e})") from None
     client = Client(ws, {})
     try:
-        ws.send(encode(hello_message(intrinsics, options, token)))
+        ws.send(encode(hello_message(intrinsics, options, token, composite)))
         reply = client.recv(timeout)
     except Exception:
         client.close()
@@ -138,18 +145,19 @@ def percentiles(values_ms: list[float]) -> dict:
 
 def replay(client: Client, frames: Iterable[Frame], realtime: bool = False, window: int = 2,
            color: str = "png", depth: str = "png16", on_record: Callable[[dict], None] | None = None,
-           reply_timeout: float = 120.0) -> dict:
+           reply_timeout: float = 120.0, on_composite: Callable[[int, str, bytes], None] | None = None) -> dict:
     """Stream frames through a session and collect the replies; returns the figures of summary.json.
 
     Without `realtime`, at most `window` frames are in flight (nothing is dropped when window <= the
     server's queue); with it, frames go out at their recording timestamps and the server drops what
     it cannot keep up with. A frame whose reply never comes (dropped) is known when a later frame's
     reply arrives, replies being in order. Ctrl-C (KeyboardInterrupt), the server's bye or its closing
-    the connection stop the sending; what has arrived is kept and `stopped` says why.
+    the connection stop the sending; what has arrived is kept and `stopped` says why. A composite (sessions
+    with objects) goes to on_composite(frame index, encoding, image bytes).
     """
     pending: OrderedDict[int, float] = OrderedDict()   # index -> send time, in send order
     latencies, server_latencies, records, errors = [], [], [], []
-    counts = {"sent": 0, "dropped": 0}
+    counts = {"sent": 0, "dropped": 0, "composites": 0}
     bye: dict = {}
     t_start = time.perf_counter()
     ts0 = None
@@ -168,6 +176,10 @@ def replay(client: Client, frames: Iterable[Frame], realtime: bool = False, wind
             records.append(record)
             if on_record is not None:
                 on_record(record)
+        elif msg["type"] == "composite":
+            counts["composites"] += 1
+            if on_composite is not None:
+                on_composite(*decode_composite(msg, memoryview(msg.get("payload", b""))))
         elif msg["type"] == "error":
             pending.pop(msg.get("frame"), None)
             errors.append({k: msg.get(k) for k in ("frame", "code", "message")})
@@ -209,6 +221,7 @@ def replay(client: Client, frames: Iterable[Frame], realtime: bool = False, wind
     stages = sorted({k for r in records for k in r["timings_ms"]})
     return {
         "device": client.ready.get("device"), "frames_sent": counts["sent"], "frames_processed": len(records),
+        "composites": counts["composites"],
         "frames_dropped": counts["dropped"], "errors": errors, "stopped": stopped,
         "wall_s": round(wall, 3), "frames_per_s": round(len(records) / wall, 3) if wall > 0 else None,
         "latency_ms": percentiles(latencies), "server_latency_ms": percentiles(server_latencies),
@@ -223,6 +236,23 @@ def _interrupt(signum, frame) -> None:
     raise KeyboardInterrupt
 
 
+def session_options(path: str | Path) -> dict:
+    """hello.options that ask a server for what `photoreg run SESSION` does: the session file's [lighting] and
+    [render], the [reconstruction] keys a client may set and its [[objects]], each naming its mesh by file name
+    (the server looks it up in its --meshes folder)."""
+    from ..config import load_session
+
+    s = load_session(path)
+    options = {"lighting": dict(vars(s.lighting)), "render": dict(vars(s.render)),
+               "reconstruction": {k: getattr(s.reconstruction, k) for k in CLIENT_RECONSTRUCTION_KEYS}}
+    if s.objects:
+        options["objects"] = [{"mesh": Path(o.mesh).name, "position": list(o.position), "rotation": list(o.rotation),
+                               "scale": o.scale, "albedo": list(o.albedo)} for o in s.objects]
+    if not s.recording.use_poses:
+        options["track"] = True
+    return options
+
+
 def stream_command(args) -> int:
     """`photoreg stream RECORDING --url URL`: replay a recording through a server, save the replies."""
     from ..config import parse_frames
@@ -233,17 +263,20 @@ def stream_command(args) -> int:
     indices = parse_frames(args.frames or "", len(rec))
     if not indices:
         raise ValueError(f"{args.recording}: no frames selected (recording has {len(rec)}, --frames {args.frames!r})")
+    options: dict = session_options(args.session) if args.session else {}
     lighting = {k: v for k, v in (("bands", args.bands), ("rays", args.rays), ("stride", args.stride),
                                   ("ray_length", args.ray_length), ("every", args.every)) if v is not None}
-    options: dict = {"lighting": lighting} if lighting else {}
+    if lighting:
+        options["lighting"] = {**options.get("lighting", {}), **lighting}
     if args.voxel_size is not None:
-        options["reconstruction"] = {"voxel_size": args.voxel_size}
+        options["reconstruction"] = {**options.get("reconstruction", {}), "voxel_size": args.voxel_size}
     if args.no_poses or not rec.has_poses:
         options["track"] = True
     out = Path(args.out) if args.out else None
     skipped: list[dict] = []
     progress = Progress(len(indices), args.quiet)
-    client = connect(args.url, rec.intrinsics, options, args.token or os.environ.get("PHOTOREG_TOKEN"))
+    client = connect(args.url, rec.intrinsics, options, args.token or os.environ.get("PHOTOREG_TOKEN"),
+                     composite=args.composite)
     frames = iter_frames(rec, indices, on_error=lambda i, msg: skipped.append({"frame": i, "error": msg}))
     partial = None
     if out is not None:
@@ -256,12 +289,17 @@ def stream_command(args) -> int:
             partial.flush()
         progress.step(f"frame {record['frame']}" + (" (weak)" if record["diagnostics"].get("weak") else ""))
 
+    def on_composite(index: int, encoding: str, image: bytes) -> None:
+        if out is not None:
+            with atomic_path(out / "composite" / f"{index:06d}.{'png' if encoding == 'png' else 'jpg'}") as tmp:
+                tmp.write_bytes(image)
+
     main_thread = threading.current_thread() is threading.main_thread()
     if main_thread:   # SIGTERM stops like Ctrl-C: what has arrived is saved
         previous = signal.signal(signal.SIGTERM, _interrupt)
     try:
         summary = replay(client, frames, realtime=args.realtime, window=args.window, color=args.color,
-                         depth=args.depth, on_record=on_record)
+                         depth=args.depth, on_record=on_record, on_composite=on_composite)
     finally:
         if main_thread:
             signal.signal(signal.SIGTERM, previous)
@@ -285,5 +323,5 @@ def stream_command(args) -> int:
         print(f"latency ms (send to reply): p50 {lat['p50']:.1f}  p95 {lat['p95']:.1f}  p99 {lat['p99']:.1f}; "
               f"server side p50 {srv['p50']:.1f}  p95 {srv['p95']:.1f}")
     if out is not None:
-        print(f"outputs in {out}: lighting.jsonl, summary.json")
+        print(f"outputs in {out}: lighting.jsonl, summary.json" + (", composite/" if summary["composites"] else ""))
     return 0 if summary["stopped"] is None else 130 if summary["stopped"] == "interrupted" else 1

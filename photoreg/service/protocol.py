@@ -1,4 +1,4 @@
-"""Wire protocol 1.0 of `photoreg serve` (docs/protocol.md): framing, message builders, validation.
+"""Wire protocol 1.1 of `photoreg serve` (docs/protocol.md): framing, message builders, validation.
 
 Pure functions, no I/O: the server and the client both build and check messages here, so the two
 sides cannot drift apart. A message is either a WebSocket text message holding one JSON object, or
@@ -12,22 +12,26 @@ import json
 import math
 import struct
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import cv2
 import numpy as np
 
 from ..config import (LightingConfig, ObjectConfig, ReconstructionConfig, RenderConfig, Session, _check_object,
                       _fill, validate)
+from ..io.images import linear_to_srgb
 from ..io.intrinsics import checked_intrinsics
 from ..io.native import depth_to_png16
 from ..io.poses import check_pose
 from ..types import Frame, Intrinsics
 
-PROTOCOL_VERSION = "1.0"
+PROTOCOL_VERSION = "1.1"   # 1.1: composites of the hello's objects (1.0 accepted objects, sent none)
 MAJOR = 1
 CLIENT_TYPES = ("hello", "frame", "bye")
 COLOR_ENCODINGS = ("jpeg", "png", "rgb8")    # rgb8: H*W*3 bytes, row-major, R G B
 DEPTH_ENCODINGS = ("png16", "u16", "f32")    # u16: little-endian depth_scale units; f32: little-endian metres
+COMPOSITE_ENCODINGS = ("jpeg", "png")        # of the composites the server sends (8-bit sRGB)
+JPEG_QUALITY = 90
 ERROR_CODES = ("bad_message", "unknown_type", "missing_field", "bad_field", "bad_image", "too_large", "version",
                "not_ready", "already_ready", "unauthorized", "too_many_clients", "pipeline", "idle_timeout",
                "shutting_down", "internal")
@@ -81,6 +85,7 @@ class Hello:
     session: Session
     token: str | None
     notes: list[str] = field(default_factory=list)
+    composite: str = "jpeg"   # encoding of the composite messages (when the session has objects)
 
 
 # ---------------------------------------------------------------------------------------------- framing
@@ -129,11 +134,14 @@ def decode(data: str | bytes) -> tuple[dict, memoryview]:
 
 # ---------------------------------------------------------------------------------------------- builders
 
-def hello_message(intrinsics: Intrinsics, options: dict | None = None, token: str | None = None) -> dict:
+def hello_message(intrinsics: Intrinsics, options: dict | None = None, token: str | None = None,
+                  composite: str | None = None) -> dict:
     msg = {"type": "hello", "version": PROTOCOL_VERSION, "intrinsics": intrinsics.to_json(),
            "options": options or {}}
     if token is not None:
         msg["token"] = token
+    if composite is not None:
+        msg["composite"] = composite
     return msg
 
 
@@ -143,8 +151,8 @@ def ready_message(hello: Hello, device: str, queue: int, limits: Limits) -> dict
             "intrinsics": hello.intrinsics.to_json(),
             "settings": {"lighting": vars(s.lighting), "reconstruction": vars(s.reconstruction),
                          "use_poses": s.recording.use_poses, "shadows": s.render.shadows,
-                         "objects": len(s.objects)},
-            "compositing": False, "limits": limits.to_json(), "notes": list(hello.notes)}
+                         "objects": len(s.objects), "composite": hello.composite if s.objects else None},
+            "compositing": bool(s.objects), "limits": limits.to_json(), "notes": list(hello.notes)}
 
 
 def lighting_message(record: dict, dropped: int, latency_ms: float, queue_ms: float) -> dict:
@@ -156,6 +164,30 @@ def lighting_message(record: dict, dropped: int, latency_ms: float, queue_ms: fl
 def record_from_lighting(msg: dict) -> dict:
     """The lighting.jsonl record inside a lighting reply (what `photoreg run` would have written)."""
     return {k: v for k, v in msg.items() if k not in LIGHTING_EXTRA}
+
+
+def encode_composite(linear: np.ndarray, encoding: str) -> bytes:
+    """A composite (H, W, 3 linear float) as the sRGB image bytes of a `composite` message: PNG lossless (the
+    pixels of `photoreg run`'s composite/NNNNNN.png), JPEG at JPEG_QUALITY."""
+    bgr = cv2.cvtColor(linear_to_srgb(linear), cv2.COLOR_RGB2BGR)
+    ok, data = cv2.imencode(".png" if encoding == "png" else ".jpg", bgr,
+                            [] if encoding == "png" else [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY])
+    if not ok:
+        raise RuntimeError(f"could not encode the composite as {encoding}")
+    return data.tobytes()
+
+
+def composite_message(index: int, image: bytes, encoding: str) -> bytes:
+    """The binary `composite` message of frame `index` (sent after its `lighting` reply)."""
+    return encode({"type": "composite", "frame": int(index),
+                   "image": {"encoding": encoding, "offset": 0, "length": len(image)}}, image)
+
+
+def decode_composite(header: dict, payload: memoryview) -> tuple[int, str, bytes]:
+    """(frame index, encoding, image bytes) of a received `composite` message."""
+    index = _count(_get(header, "frame", "composite"), "composite.frame")
+    encoding, image = _payload(_get(header, "image", "composite"), "image", payload, COMPOSITE_ENCODINGS, "composite")
+    return index, encoding, image
 
 
 def error_message(code: str, message: str, frame: int | None = None) -> dict:
@@ -262,9 +294,27 @@ def parse_intrinsics(value, limits: Limits) -> Intrinsics:
     return intr
 
 
-def session_from_options(value, device: str, limits: Limits) -> tuple[Session, list[str]]:
+def resolve_mesh(name: str, meshes: Path | None, where: str) -> str:
+    """The path of the mesh an object names: a file name in the server's mesh folder (`photoreg serve --meshes`),
+    never a path, so that a client reaches no other file."""
+    if meshes is None:
+        raise ProtocolError("bad_field", f"{where}: this server has no mesh folder (photoreg serve --meshes DIR), "
+                                         "so it inserts no objects")
+    if Path(name).name != name or name.startswith(".") or "\\" in name:
+        raise ProtocolError("bad_field", f"{where}: a mesh is named by its file name in the server's mesh folder, "
+                                         f"got {name!r:.80}")
+    path = Path(meshes) / name
+    if not path.is_file():
+        known = sorted(p.name for p in Path(meshes).iterdir() if p.is_file() and not p.name.startswith("."))
+        raise ProtocolError("bad_field", f"{where}: no mesh {name!r:.80} on this server (it has: "
+                                         f"{', '.join(known[:20]) or 'none'}{', ...' if len(known) > 20 else ''})")
+    return str(path)
+
+
+def session_from_options(value, device: str, limits: Limits, meshes: Path | None = None) -> tuple[Session, list[str]]:
     """Session from hello.options, keyed like a session file: {lighting: {...}, reconstruction: {...},
-    render: {shadows}, objects: [...], track: bool}; returns the session and notes for `ready`."""
+    render: {shadows}, objects: [...], track: bool}; objects name their mesh in `meshes` (resolve_mesh).
+    Returns the session and notes for `ready`."""
     opts = _object(value, "hello.options")
     unknown = sorted(set(opts) - {"lighting", "reconstruction", "render", "objects", "track"})
     if unknown:
@@ -291,11 +341,9 @@ def session_from_options(value, device: str, limits: Limits) -> tuple[Session, l
                 raise ProtocolError("bad_field", f"hello.options.objects must be a list of at most "
                                                  f"{limits.max_objects} objects")
             s.objects = [_fill(ObjectConfig, o, "hello.options", "objects") for o in objs]
-            for o in s.objects:
+            for i, o in enumerate(s.objects):
                 _check_object(o, "hello.options")
-            if s.objects:
-                notes.append(f"{len(s.objects)} virtual object(s) accepted but not composited: compositing is not "
-                             "implemented yet, so no composite messages are sent")
+                o.mesh = resolve_mesh(o.mesh, meshes, f"hello.options.objects[{i}].mesh")
         if "track" in opts:
             if not isinstance(opts["track"], bool):
                 raise ProtocolError("bad_field",
@@ -318,15 +366,20 @@ def session_from_options(value, device: str, limits: Limits) -> tuple[Session, l
     return s, notes
 
 
-def parse_hello(header: dict, device: str, limits: Limits) -> Hello:
-    """Validate a `hello` (version first, so a client of another major version learns that first)."""
+def parse_hello(header: dict, device: str, limits: Limits, meshes: Path | None = None) -> Hello:
+    """Validate a `hello` (version first, so a client of another major version learns that first); objects name
+    meshes in `meshes` (the server's mesh folder)."""
     version = check_version(_get(header, "version", "hello"))
     intr = parse_intrinsics(_get(header, "intrinsics", "hello"), limits)
-    session, notes = session_from_options(header.get("options", {}), device, limits)
+    session, notes = session_from_options(header.get("options", {}), device, limits, meshes)
     token = header.get("token")
     if token is not None and not isinstance(token, str):
         raise ProtocolError("bad_field", "hello.token must be a string")
-    return Hello(version, intr, session, token, notes)
+    composite = header.get("composite", "jpeg")
+    if composite not in COMPOSITE_ENCODINGS:
+        raise ProtocolError("bad_field", f"hello.composite must be one of {', '.join(COMPOSITE_ENCODINGS)}, "
+                                         f"got {composite!r:.80}")
+    return Hello(version, intr, session, token, notes, composite)
 
 
 def _png_size(data: bytes) -> tuple[int, int]:
@@ -361,17 +414,17 @@ def _jpeg_size(data: bytes) -> tuple[int, int]:
     raise ValueError("no JPEG frame header found")
 
 
-def _payload(spec, name: str, payload: memoryview, encodings: tuple[str, ...]) -> tuple[str, bytes]:
-    obj = _object(spec, f"frame.{name}")
-    enc = _get(obj, "encoding", f"frame.{name}")
+def _payload(spec, name: str, payload: memoryview, encodings: tuple[str, ...],
+             message: str = "frame") -> tuple[str, bytes]:
+    where = f"{message}.{name}"
+    obj = _object(spec, where)
+    enc = _get(obj, "encoding", where)
     if enc not in encodings:
-        raise ProtocolError("bad_field", f"frame.{name}.encoding must be one of {', '.join(encodings)}, "
-                                         f"got {enc!r:.80}")
-    off = _count(_get(obj, "offset", f"frame.{name}"), f"frame.{name}.offset")
-    n = _count(_get(obj, "length", f"frame.{name}"), f"frame.{name}.length")
+        raise ProtocolError("bad_field", f"{where}.encoding must be one of {', '.join(encodings)}, got {enc!r:.80}")
+    off = _count(_get(obj, "offset", where), f"{where}.offset")
+    n = _count(_get(obj, "length", where), f"{where}.length")
     if off + n > len(payload):
-        raise ProtocolError("bad_field", f"frame.{name}: bytes {off}..{off + n} lie outside the "
-                                         f"{len(payload)}-byte payload")
+        raise ProtocolError("bad_field", f"{where}: bytes {off}..{off + n} lie outside the {len(payload)}-byte payload")
     return enc, bytes(payload[off:off + n])
 
 

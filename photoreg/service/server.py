@@ -1,4 +1,4 @@
-"""`photoreg serve`: the WebSocket service (protocol 1.0, docs/protocol.md), one pipeline per connection.
+"""`photoreg serve`: the WebSocket service (protocol 1.1, docs/protocol.md), one pipeline per connection.
 
 A connection runs two tasks on the event loop: a reader (receive, validate, decode the images on a
 helper thread, enqueue) and a worker (run the pipeline on the connection's own thread, reply). The
@@ -6,7 +6,8 @@ queue between them is bounded and, when a frame arrives while it is full, drops 
 frame ('latest wins'), so a client faster than the pipeline gets fresh answers and memory stays
 bounded: per connection at most `queue` decoded frames, one message being decoded and websockets'
 small receive buffer. A client that does not read its replies stalls only its own worker (a send
-waits for its socket); every other connection keeps its own thread and queue.
+waits for its socket); every other connection keeps its own thread and queue. A session with objects (their
+meshes named in the server's mesh folder, --meshes) gets each frame's composite after its lighting reply.
 """
 from __future__ import annotations
 
@@ -21,6 +22,7 @@ import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import cv2
 from websockets.asyncio.server import ServerConnection, serve
@@ -31,8 +33,8 @@ from ..device import resolve_device
 from ..pipeline import Pipeline
 from ..runner import result_record
 from ..types import Frame, Intrinsics
-from .protocol import (CLIENT_TYPES, Limits, ProtocolError, bye_message, decode, decode_frame, encode,
-                       error_message, lighting_message, parse_hello, ready_message)
+from .protocol import (CLIENT_TYPES, Limits, ProtocolError, bye_message, composite_message, decode, decode_frame,
+                       encode, encode_composite, error_message, lighting_message, parse_hello, ready_message)
 
 log = logging.getLogger("photoreg.serve")
 COUNTS = ("received", "processed", "dropped", "cancelled", "errors")   # frames, per connection and in total
@@ -52,10 +54,13 @@ class ServerConfig:
     block_count: int = 4000       # initial TSDF hash capacity per session (80 KB per block, grows when full):
                                   # the memory a connection costs, so the server's to choose, not the client's
     limits: Limits = field(default_factory=Limits)
+    meshes: str | None = None     # folder of the meshes that clients' objects name (None: no objects)
 
     def __post_init__(self) -> None:
         if self.max_clients < 1 or self.queue < 1:
             raise ValueError(f"--max-clients and --queue must be >= 1, got {self.max_clients} and {self.queue}")
+        if self.meshes is not None and not Path(self.meshes).is_dir():
+            raise ValueError(f"--meshes {self.meshes}: not a folder")
 
 
 @dataclass
@@ -94,6 +99,7 @@ class Connection:
         self.executor = ThreadPoolExecutor(1, thread_name_prefix="photoreg-conn")
         self.pipeline: Pipeline | None = None
         self.intrinsics: Intrinsics | None = None
+        self.composite = "jpeg"          # the session's composite encoding (hello.composite)
         self.stop_reason: str | None = None
         self.reader: asyncio.Task | None = None
         self.counts = collections.Counter()  # of COUNTS
@@ -216,7 +222,8 @@ class Connection:
             if not isinstance(given, str) or not hmac.compare_digest(given.encode(), token.encode()):
                 log.warning("%s: refused: missing or wrong token", self.peer)
                 return "unauthorized"
-        hello = parse_hello(header, self.server.device, self.cfg.limits)
+        hello = parse_hello(header, self.server.device, self.cfg.limits,
+                            Path(self.cfg.meshes) if self.cfg.meshes is not None else None)
         hello.session.reconstruction.block_count = self.cfg.block_count
         loop = asyncio.get_running_loop()
         try:
@@ -224,7 +231,7 @@ class Connection:
         except Exception as e:
             log.exception("%s: could not start a pipeline", self.peer)
             raise ProtocolError("pipeline", f"could not start the pipeline: {e}") from None
-        self.intrinsics = hello.intrinsics
+        self.intrinsics, self.composite = hello.intrinsics, hello.composite
         k = hello.intrinsics
         log.info("%s: session started (%dx%d, bands %d, rays %d, stride %d)", self.peer, k.width, k.height,
                  hello.session.lighting.bands, hello.session.lighting.rays, hello.session.lighting.stride)
@@ -244,6 +251,11 @@ class Connection:
 
     # --------------------------------------------------------------------------------------- worker
 
+    def _process(self, frame: Frame):
+        """(FrameResult, its composite encoded for the client or None), on the connection's thread."""
+        result = self.pipeline.process(frame)
+        return result, None if result.composite is None else encode_composite(result.composite, self.composite)
+
     async def _work(self) -> None:
         """Process queued frames one at a time on the connection's thread and reply to each."""
         loop = asyncio.get_running_loop()
@@ -258,7 +270,7 @@ class Connection:
                 index = item.frame.index
                 started = time.perf_counter()
                 try:
-                    result = await loop.run_in_executor(self.executor, self.pipeline.process, item.frame)
+                    result, image = await loop.run_in_executor(self.executor, self._process, item.frame)
                     msg = lighting_message(result_record(result), self.counts["dropped"],
                                            (time.perf_counter() - item.received) * 1000.0,
                                            (started - item.received) * 1000.0)
@@ -270,6 +282,8 @@ class Connection:
                     continue
                 self.counts["processed"] += 1
                 await self.ws.send(text)
+                if image is not None:
+                    await self.ws.send(composite_message(result.index, image, self.composite))
         except ConnectionClosed:
             pass
 
@@ -395,7 +409,7 @@ def serve_command(args) -> int:
     cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_ERROR)   # clients' corrupt images get error replies
     config = ServerConfig(host=args.host, port=args.port, token=args.token or os.environ.get("PHOTOREG_TOKEN"),
                           device=args.device, max_clients=args.max_clients, queue=args.queue,
-                          idle_timeout=args.idle_timeout,
+                          idle_timeout=args.idle_timeout, meshes=args.meshes,
                           limits=Limits(max_message_bytes=int(args.max_message_mb * 2**20)))
     totals = asyncio.run(serve_until_signal(config))
     print(f"photoreg serve: stopped after {totals['processed']} frames ({totals['dropped']} dropped, "
