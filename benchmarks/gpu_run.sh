@@ -19,6 +19,9 @@
 #   every      the lighting estimated on every n-th frame (lighting.every, --every): TUM alone and with the bunny
 #              at stride 4 / 64 rays / 3 bands, alone at stride 1 / 169 rays / 4 bands, the demo with its traced
 #              light; the settings alternate (calls differ by 20-40%); every run's figures into OUTDIR/every.json
+#   live       `photoreg serve --device cuda --meshes $PHOTOREG_DATA/meshes` and `photoreg stream RECORDING --session
+#              sessions/tum_fr1_rpy.toml` through it (the bunny composited by the server, JPEG back), every 1 and 4:
+#              frames/s and latency as a client sees them (OUTDIR/live_n*.json, the stream's summary.json)
 #   sweep      `photoreg bench sweep --device cuda` on SWEEP_SCENES (recordings with lighting_gt.json
 #              made here with `photoreg synth`); VOXELS (default 0.01,0.02) restricts it to fit one call
 set -euo pipefail
@@ -95,6 +98,16 @@ for step in "$@"; do
           --bands $4 --every $5 --json "/tmp/every/$(ls /tmp/every | wc -l)_$1_s$2_n$5.json" 2>/dev/null
       done
       python3 -c "import json, pathlib, sys; fs = sorted(pathlib.Path('/tmp/every').glob('*.json'), key=lambda p: int(p.name.split('_')[0])); json.dump([dict(json.loads(f.read_text()), run=f.stem) for f in fs], open(sys.argv[1], 'w'), indent=1)" "$out/every.json" ;;
+    live)
+      python3 -m photoreg serve --device cuda --port 8765 --meshes "$PHOTOREG_DATA/meshes" > /tmp/serve.log 2>&1 &
+      srv=$!
+      for i in $(seq 90); do grep -q "listening on" /tmp/serve.log && break; sleep 1; done
+      for n in 1 4; do
+        python3 -m photoreg stream "$rec" --url ws://127.0.0.1:8765 --session sessions/tum_fr1_rpy.toml \
+          --frames 0:30 --every $n --out /tmp/live_n$n --quiet
+        cp /tmp/live_n$n/summary.json "$out/live_n$n.json"
+      done
+      kill $srv; wait $srv || true; tail -3 /tmp/serve.log ;;
     sweep)
       # The CPU rows of benchmarks/speed_error.csv are kept: copy the merged table and plot back from OUTDIR.
       [ -f "$out/speed_error.csv" ] || cp benchmarks/speed_error.csv "$out/speed_error.csv"

@@ -352,7 +352,9 @@ class PhotoregServer:
             conn.stop(reason)
         if tasks:
             await asyncio.wait(tasks, timeout=self.config.shutdown_timeout + 2 * SEND_TIMEOUT + 1)
-        self._ws_server.close(close_connections=True, code=CloseCode.GOING_AWAY, reason=reason)
+        # close() gives connections still open 1001 without a reason: its code and reason arguments are newer
+        # than the websockets >= 14 that pyproject allows (15.0.1 raised TypeError here; shutdown never finished)
+        self._ws_server.close(close_connections=True)
         await self._ws_server.wait_closed()
 
 
