@@ -39,8 +39,17 @@ def _denoise_luminance(linear: np.ndarray, method: str) -> np.ndarray:
     return (linear * ratio[..., None]).astype(np.float32)
 
 
+def filter_depth(depth: np.ndarray, valid: np.ndarray, window: int, sigma_m: float) -> np.ndarray:
+    """Bilateral filter of a depth map (metres, 0 where not `valid`): each valid pixel becomes the average of its
+    `window`-pixel neighbourhood weighted by distance (sigma window // 2 pixels) and by depth difference (sigma_m),
+    so sensor noise is averaged and depth edges kept; invalid pixels stay 0 and, being far in depth from any
+    valid one, weigh next to nothing."""
+    return np.where(valid, cv2.bilateralFilter(depth, window, sigma_m, window // 2), 0.0).astype(np.float32)
+
+
 def prepare(frame: Frame, light: LightingConfig, recon: ReconstructionConfig) -> Prepared:
-    """Linearise colour, mask saturated/black pixels and invalid depth (NaN, inf, out of range)."""
+    """Linearise colour, mask saturated/black pixels and invalid depth (NaN, inf, out of range); optionally
+    filter the depth (reconstruction.depth_filter_px)."""
     if frame.color.shape[:2] != frame.depth.shape[:2]:
         raise ValueError(f"frame {frame.index} ({frame.source}): colour {frame.color.shape[:2]} and depth "
                          f"{frame.depth.shape[:2]} sizes differ")
@@ -54,6 +63,8 @@ def prepare(frame: Frame, light: LightingConfig, recon: ReconstructionConfig) ->
     d = frame.depth.astype(np.float32)   # a copy: NaN and +-inf fail the range test below
     valid = (d >= recon.depth_min) & (d <= recon.depth_max)
     d[~valid] = 0.0
+    if recon.depth_filter_px:
+        d = filter_depth(d, valid, recon.depth_filter_px, recon.depth_filter_m)
     linear = _denoise_luminance(srgb_to_linear(frame.color), light.denoise)
     n = float(d.size)
     return Prepared(linear, d, valid & ~saturated & ~black, float(saturated.sum() / n), float(black.sum() / n),

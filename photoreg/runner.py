@@ -44,6 +44,7 @@ def session_from_args(args) -> Session:
     for opt, section, key in (("stride", "lighting", "stride"), ("rays", "lighting", "rays"),
                               ("bands", "lighting", "bands"), ("ray_length", "lighting", "ray_length"),
                               ("every", "lighting", "every"),
+                              ("depth_filter", "reconstruction", "depth_filter_px"),
                               ("voxel_size", "reconstruction", "voxel_size"), ("shadows", "render", "shadows")):
         v = getattr(args, opt)
         if v is not None:
