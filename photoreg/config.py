@@ -36,7 +36,8 @@ class ReconstructionConfig:
     # of this many pixels (odd; 0 = off), spatial sigma half of it (rounded down), range sigma depth_filter_m
     # (steps larger than a few of it are kept). Generated scenes (12 frames): 9 px / 2 cm took tabletop to 6.1 deg
     # / si-RMSE 0.082 (9.2 / 0.087), corner 0.199 -> 0.159, but the 40-frame tabletop 0.083 -> 0.092 and TUM's
-    # held-out residual 0.216 -> 0.224 (benchmarks/lighting_accuracy.md): off until that is understood.
+    # held-out residual 0.216 -> 0.224; 5 px / 1 cm: corner 0.165, tabletop 0.086, the 40-frame one 0.085, TUM
+    # 0.219, but flicker up (ICL-NUIM 0.038 -> 0.053) (benchmarks/lighting_accuracy.md): off until understood.
     depth_filter_px: int = 0
     depth_filter_m: float = 0.02
 
