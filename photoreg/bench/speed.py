@@ -52,7 +52,8 @@ def bench_recording(session: Session, warmup: int = 2) -> dict:
             timings.append(r.timings_ms)
         print(f"\rbench: frame {k + 1}/{len(indices)}", end="", file=sys.stderr, flush=True)
     print(file=sys.stderr)
-    stages = list(dict.fromkeys(s for t in timings for s in t))   # frames holding the lighting skip stages
+    # frames holding the lighting skip stages: every stage any frame ran, the total last
+    stages = [s for s in dict.fromkeys(s for t in timings for s in t) if s != "total"] + ["total"]
     L = session.lighting
     return {
         "device": pipe.device, "device_name": device_name(pipe.device),
@@ -97,9 +98,10 @@ def speed_command(args) -> int:
     res = bench_recording(s, warmup=args.warmup)
     stages = "  ".join(f"{k} {v:.1f}" for k, v in res["ms_mean"].items())
     render = f", {res['objects']} object(s) inserted ({res['shadows']})" if res["objects"] else ", no objects"
-    print(f"{res['device_name']} ({res['device']}, {res['threads']} CPU threads), {res['size']} stride {res['stride']} rays {res['rays']} "
-          f"bands {res['bands']}, every {res['every']}, sun {res['sun']}, bounce {res['bounce']}, history {res['history']}{render}: "
-          f"{res['frames_per_s']} frames/s (median frame: {res['frames_per_s_median']})\n  mean ms: {stages}")
+    print(f"{res['device_name']} ({res['device']}, {res['threads']} CPU threads), {res['size']} stride {res['stride']} "
+          f"rays {res['rays']} bands {res['bands']}, every {res['every']}, sun {res['sun']}, bounce {res['bounce']}, "
+          f"history {res['history']}{render}: {res['frames_per_s']} frames/s (median frame: "
+          f"{res['frames_per_s_median']})\n  mean ms: {stages}")
     if args.json_out:
         write_json(args.json_out, res)
     return 0

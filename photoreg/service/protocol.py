@@ -38,7 +38,8 @@ ERROR_CODES = ("bad_message", "unknown_type", "missing_field", "bad_field", "bad
 # Keys a lighting reply adds to the lighting.jsonl record (runner.result_record).
 LIGHTING_EXTRA = ("type", "dropped", "latency_ms", "queue_ms")
 # Reconstruction keys a client may set; block_count (memory) stays the server's.
-CLIENT_RECONSTRUCTION_KEYS = ("voxel_size", "trunc_voxels", "depth_min", "depth_max", "depth_filter_px", "depth_filter_m")
+CLIENT_RECONSTRUCTION_KEYS = ("voxel_size", "trunc_voxels", "depth_min", "depth_max", "depth_filter_px",
+                              "depth_filter_m")
 _LEN = struct.Struct(">I")
 _PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 
