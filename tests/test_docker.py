@@ -94,7 +94,7 @@ def test_base_images_and_platforms():
 
 def test_compose():
     """compose.yaml parses, builds docker/Dockerfile, binds 0.0.0.0 inside, publishes 8765 on loopback only,
-    mounts recordings read-only and an output volume."""
+    mounts recordings and the server's mesh folder read-only and an output volume."""
     doc = yaml.safe_load((DOCKER / "compose.yaml").read_text())
     (svc,) = doc["services"].values()
     build = svc["build"]
@@ -107,6 +107,7 @@ def test_compose():
         source, target = rest.rsplit(":", 1)
         mounts[target] = (source, mode)
     assert mounts["/data"][1] == "ro", "recordings are not mounted read-only"
+    assert svc["command"][5:] == ["--meshes", "/meshes"] and mounts["/meshes"][1] == "ro", "no read-only mesh folder"
     assert mounts["/out"][0] in doc["volumes"], "no named output volume at /out"
 
 
