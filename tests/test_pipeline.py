@@ -1,6 +1,7 @@
 """End-to-end runs of the per-frame pipeline on the demo and the shared real recordings."""
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 
@@ -9,10 +10,16 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+import photoreg.pipeline as pipeline_module
 from photoreg.cli import main
-from photoreg.config import LightingConfig, load_session, validate
+from photoreg.config import LightingConfig, Session, load_session, validate
+from photoreg.io.images import linear_to_srgb, srgb_to_linear
+from photoreg.io.recording import iter_frames, open_recording
+from photoreg.preprocess import prepare
 from photoreg.recon.tracking import ate_rmse
 from photoreg.runner import run_session
+from photoreg.types import Frame, Intrinsics
+from scenes import write_recording
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -103,17 +110,8 @@ def test_ate_is_zero_for_a_rigidly_moved_copy_and_measures_noise():
 
 def test_lighting_every_holds_the_estimate_between_estimates(tmp_path, monkeypatch):
     """lighting.every = 3: frames 0 and 3 are solved, the frames between hold the latest estimate exactly (no
-    transfer, no solve) with their own exposure gain: frame 4, exposed at half the linear radiance, is composited
-    in its own exposure."""
-    import dataclasses
-
-    import photoreg.pipeline as pipeline_module
-    from photoreg.config import Session
-    from photoreg.io.images import linear_to_srgb, srgb_to_linear
-    from photoreg.io.recording import iter_frames, open_recording
-    from photoreg.types import Intrinsics
-    from scenes import write_recording
-
+    transfer, no solve) with their own exposure gain: frame 4, exposed at half the linear radiance, gets 0.5 (the
+    exposure its composite is made in)."""
     k = Intrinsics(64, 48, 56.0, 56.0, 31.5, 23.5, 5000.0)
     rec = open_recording(write_recording(tmp_path / "rec", k, 6, with_gt=False))
     solved, solve = [], pipeline_module.solve
@@ -163,10 +161,6 @@ def test_composites_on_frames_that_hold_the_lighting(tmp_path):
 def test_depth_filter_averages_noise_and_keeps_edges_and_holes():
     """reconstruction.depth_filter_px: a noisy plane at 1 m (sigma 2 mm) with a 10 cm step and a hole; the filter
     cuts the noise, does not blur the step and leaves the hole empty; bad windows are refused."""
-    from photoreg.config import Session
-    from photoreg.preprocess import prepare
-    from photoreg.types import Frame, Intrinsics
-
     rng = np.random.default_rng(0)
     truth = np.full((60, 80), 1.0, np.float32)
     truth[:, 40:] = 1.1
