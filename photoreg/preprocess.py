@@ -44,7 +44,7 @@ def filter_depth(depth: np.ndarray, valid: np.ndarray, window: int, sigma_m: flo
     `window`-pixel neighbourhood weighted by distance (sigma window // 2 pixels) and by depth difference (sigma_m),
     so sensor noise is averaged and depth edges kept; invalid pixels stay 0 and, being far in depth from any
     valid one, weigh next to nothing."""
-    return np.where(valid, cv2.bilateralFilter(depth, window, sigma_m, window // 2), 0.0).astype(np.float32)
+    return np.where(valid, cv2.bilateralFilter(depth, window, sigma_m, window // 2), np.float32(0.0))
 
 
 def prepare(frame: Frame, light: LightingConfig, recon: ReconstructionConfig) -> Prepared:

@@ -30,7 +30,7 @@ MAJOR = 1
 CLIENT_TYPES = ("hello", "frame", "bye")
 COLOR_ENCODINGS = ("jpeg", "png", "rgb8")    # rgb8: H*W*3 bytes, row-major, R G B
 DEPTH_ENCODINGS = ("png16", "u16", "f32")    # u16: little-endian depth_scale units; f32: little-endian metres
-COMPOSITE_ENCODINGS = ("jpeg", "png")        # of the composites the server sends (8-bit sRGB)
+COMPOSITE_ENCODINGS = ("jpeg", "png")        # of the composites the server sends (8-bit sRGB); jpeg the default
 JPEG_QUALITY = 90
 ERROR_CODES = ("bad_message", "unknown_type", "missing_field", "bad_field", "bad_image", "too_large", "version",
                "not_ready", "already_ready", "unauthorized", "too_many_clients", "pipeline", "idle_timeout",
@@ -86,7 +86,7 @@ class Hello:
     session: Session
     token: str | None
     notes: list[str] = field(default_factory=list)
-    composite: str = "jpeg"   # encoding of the composite messages (when the session has objects)
+    composite: str = COMPOSITE_ENCODINGS[0]   # encoding of the composite messages (when the session has objects)
 
 
 # ---------------------------------------------------------------------------------------------- framing
@@ -167,15 +167,19 @@ def record_from_lighting(msg: dict) -> dict:
     return {k: v for k, v in msg.items() if k not in LIGHTING_EXTRA}
 
 
+def _encode_rgb8(rgb8: np.ndarray, encoding: str, jpeg_quality: int, what: str) -> bytes:
+    """PNG or JPEG bytes of an 8-bit RGB image (`encoding` "png" or "jpeg"); `what` names it in the error."""
+    params = [cv2.IMWRITE_JPEG_QUALITY, jpeg_quality] if encoding == "jpeg" else []
+    ok, buf = cv2.imencode(".jpg" if encoding == "jpeg" else ".png", cv2.cvtColor(rgb8, cv2.COLOR_RGB2BGR), params)
+    if not ok:
+        raise ValueError(f"{what}: could not encode it as {encoding}")
+    return buf.tobytes()
+
+
 def encode_composite(linear: np.ndarray, encoding: str) -> bytes:
     """A composite (H, W, 3 linear float) as the sRGB image bytes of a `composite` message: PNG lossless (the
     pixels of `photoreg run`'s composite/NNNNNN.png), JPEG at JPEG_QUALITY."""
-    bgr = cv2.cvtColor(linear_to_srgb(linear), cv2.COLOR_RGB2BGR)
-    ok, data = cv2.imencode(".png" if encoding == "png" else ".jpg", bgr,
-                            [] if encoding == "png" else [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY])
-    if not ok:
-        raise RuntimeError(f"could not encode the composite as {encoding}")
-    return data.tobytes()
+    return _encode_rgb8(linear_to_srgb(linear), encoding, JPEG_QUALITY, "the composite")
 
 
 def composite_message(index: int, image: bytes, encoding: str) -> bytes:
@@ -214,12 +218,7 @@ def encode_frame(frame: Frame, index: int | None = None, color: str = "png", dep
     if color == "rgb8":
         cbytes = np.ascontiguousarray(frame.color, dtype=np.uint8).tobytes()
     else:
-        params = [cv2.IMWRITE_JPEG_QUALITY, jpeg_quality] if color == "jpeg" else []
-        ok, buf = cv2.imencode(".jpg" if color == "jpeg" else ".png", cv2.cvtColor(frame.color, cv2.COLOR_RGB2BGR),
-                               params)
-        if not ok:
-            raise ValueError(f"frame {frame.index}: could not encode the colour image as {color}")
-        cbytes = buf.tobytes()
+        cbytes = _encode_rgb8(frame.color, color, jpeg_quality, f"frame {frame.index}: the colour image")
     if depth == "f32":
         dbytes = np.nan_to_num(frame.depth, nan=0.0, posinf=0.0, neginf=0.0).astype("<f4").tobytes()
     else:
@@ -376,7 +375,7 @@ def parse_hello(header: dict, device: str, limits: Limits, meshes: Path | None =
     token = header.get("token")
     if token is not None and not isinstance(token, str):
         raise ProtocolError("bad_field", "hello.token must be a string")
-    composite = header.get("composite", "jpeg")
+    composite = header.get("composite", COMPOSITE_ENCODINGS[0])
     if composite not in COMPOSITE_ENCODINGS:
         raise ProtocolError("bad_field", f"hello.composite must be one of {', '.join(COMPOSITE_ENCODINGS)}, "
                                          f"got {composite!r:.80}")

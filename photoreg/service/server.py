@@ -99,7 +99,7 @@ class Connection:
         self.executor = ThreadPoolExecutor(1, thread_name_prefix="photoreg-conn")
         self.pipeline: Pipeline | None = None
         self.intrinsics: Intrinsics | None = None
-        self.composite = "jpeg"          # the session's composite encoding (hello.composite)
+        self.composite: str | None = None   # the session's composite encoding (hello.composite)
         self.stop_reason: str | None = None
         self.reader: asyncio.Task | None = None
         self.counts = collections.Counter()  # of COUNTS
