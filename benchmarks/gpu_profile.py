@@ -72,12 +72,12 @@ def main() -> None:
     vol = TSDFVolume(FusionConfig(), device=a.device)
     frames = list(iter_frames(rec, range(10)))
     for f in frames:
-        vol.integrate(f.depth, None, rec.intrinsics, f.pose)
+        vol.integrate(f.depth, rec.intrinsics, f.pose)
     pose = frames[-1].pose
     last = frames[-1]
-    res["integrate_ms"] = _timed(lambda: vol.integrate(last.depth, None, rec.intrinsics, pose), wp, a.device)
+    res["integrate_ms"] = _timed(lambda: vol.integrate(last.depth, rec.intrinsics, pose), wp, a.device)
     res["integrate_and_dense_grid_ms"] = _timed(
-        lambda: (vol.integrate(last.depth, None, rec.intrinsics, pose), vol.dense_grid()), wp, a.device)
+        lambda: (vol.integrate(last.depth, rec.intrinsics, pose), vol.dense_grid()), wp, a.device)
     grid = vol.dense_grid()
     res["brick_voxels"] = int(np.prod(grid.sdf.shape))
     for s in (1, 4):
@@ -97,7 +97,7 @@ def main() -> None:
         for pitch in (-0.9, 0.0, 0.9):
             target = centre + np.array([np.cos(yaw) * np.cos(pitch), np.sin(yaw) * np.cos(pitch), np.sin(pitch)])
             p = look_at(centre, target, up=(0, 0, 1))
-            room.integrate(room_depth(intr, p), None, intr, p)
+            room.integrate(room_depth(intr, p), intr, p)
     wp.synchronize_device(a.device)
     res["room_blocks"] = int(room.vbg.hashmap().size())
     res["room_vbg_mib"] = round(_used_mib(wp, a.device) - before, 1)

@@ -62,11 +62,11 @@ def main(argv=None) -> int:
 
     cfg = FusionConfig(voxel_size=0.01, block_resolution=16)
     vol = TSDFVolume(cfg, device)
-    t_int = [timed(lambda: vol.integrate(d, None, intr, p), 1)[0][0] for d, p in zip(depths[1:], poses[1:])]
+    t_int = [timed(lambda: vol.integrate(d, intr, p), 1)[0][0] for d, p in zip(depths[1:], poses[1:])]
     t_first_export, grid = timed(vol.dense_grid, 1)  # allocates the brick (and compiles on a cold cache)
     t_export = []
     for _ in range(args.repeats):  # per-frame export: the blocks of one more integrated frame
-        vol.integrate(depths[0], None, intr, poses[0])
+        vol.integrate(depths[0], intr, poses[0])
         ms, grid = timed(vol.dense_grid, 1)
         t_export += ms
     view = poses[0]

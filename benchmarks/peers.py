@@ -29,7 +29,6 @@ import numpy as np  # noqa: E402
 from photoreg.bench.speed import device_name  # noqa: E402
 from photoreg.device import init_warp, resolve_device  # noqa: E402
 from photoreg.io.atomic import write_json  # noqa: E402
-from photoreg.io.images import srgb_to_linear  # noqa: E402
 from photoreg.io.recording import iter_frames, open_recording  # noqa: E402
 from photoreg.kernels.launch import cpu_threads, set_cpu_threads  # noqa: E402
 from photoreg.kernels.raycast import raycast_surface  # noqa: E402
@@ -147,7 +146,7 @@ def main(argv=None) -> int:
     vol = TSDFVolume(FusionConfig(voxel_size=args.voxel_size), device)
     view = None
     for frame in iter_frames(rec, list(range(min(args.frames, len(rec))))):
-        vol.integrate(frame.depth, srgb_to_linear(frame.color), rec.intrinsics, frame.pose)
+        vol.integrate(frame.depth, rec.intrinsics, frame.pose)
         view, sensor = frame.pose, frame.depth
     grid = vol.dense_grid()
     res = {"device": device, "device_name": device_name(device), "threads": cpu_threads() if device == "cpu" else 0,

@@ -278,7 +278,7 @@ class Pipeline:
             pose, notes = self._pose(frame, prep)
         if pose is not None:
             with self._timed(t, "fuse"):
-                self.volume.integrate(prep.depth, prep.linear, self.intrinsics, pose)
+                self.volume.integrate(prep.depth, self.intrinsics, pose)
         return prep, pose, list(notes)
 
     def estimate(self, frame: Frame, prep: Prepared, pose: np.ndarray | None, notes: list[str],

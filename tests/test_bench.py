@@ -136,7 +136,7 @@ def room_grid():
              look_at([0.0, 0.2, 1.3], [0.7, -0.7, 0.2])]
     vol = TSDFVolume(FusionConfig(voxel_size=0.02), "cpu")
     for p in poses:
-        vol.integrate(scene.render_depth(intr, p)[0], None, intr, p)
+        vol.integrate(scene.render_depth(intr, p)[0], intr, p)
     return vol.dense_grid(), intr, poses
 
 

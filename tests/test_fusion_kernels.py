@@ -36,11 +36,11 @@ def room_poses(n: int, seed: int = 0) -> list[np.ndarray]:
     return poses
 
 
-def fuse(scene: PrimitiveScene, intr, poses, cfg: FusionConfig, color=None) -> TSDFVolume:
+def fuse(scene: PrimitiveScene, intr, poses, cfg: FusionConfig) -> TSDFVolume:
     vol = TSDFVolume(cfg, "cpu")
     for pose in poses:
         depth, _ = scene.render_depth(intr, pose)
-        vol.integrate(depth, None if color is None else np.broadcast_to(color, depth.shape + (3,)), intr, pose)
+        vol.integrate(depth, intr, pose)
     return vol
 
 
@@ -134,11 +134,11 @@ def test_dense_export_matches_voxel_block_grid_and_grows():
     first = look_at([0.0, 0.0, 1.2], [1.0, 0.0, 0.6])    # the +x wall
     second = look_at([0.0, 0.0, 1.2], [-1.0, 0.0, 0.6])  # the -x wall: outside the first brick
     depth, _ = scene.render_depth(K160, first)
-    vol.integrate(depth, None, K160, first)
+    vol.integrate(depth, K160, first)
     g1 = vol.dense_grid()
     before = g1.sdf.numpy().copy()
     depth, _ = scene.render_depth(K160, second)
-    vol.integrate(depth, None, K160, second)
+    vol.integrate(depth, K160, second)
     g2 = vol.dense_grid()
     assert g2.origin[0] < g1.origin[0] and g2.shape[0] > g1.shape[0]
     # only the side that fell short grows, and by a share of the extent, so a turning camera regrows it rarely
@@ -158,7 +158,7 @@ def test_dense_export_matches_voxel_block_grid_and_grows():
 
     # a view inside the brick reuses it
     depth, _ = scene.render_depth(K160, first)
-    vol.integrate(depth, None, K160, first)
+    vol.integrate(depth, K160, first)
     assert vol.dense_grid().sdf is g2.sdf
 
 
@@ -180,7 +180,7 @@ def test_empty_space_distance_field(room):
 
 def test_empty_volume_gives_an_empty_grid():
     vol = TSDFVolume(FusionConfig(voxel_size=VOXEL, block_resolution=8), "cpu")
-    vol.integrate(np.zeros((K160.height, K160.width), np.float32), None, K160, np.eye(4))  # no valid depth
+    vol.integrate(np.zeros((K160.height, K160.width), np.float32), K160, np.eye(4))  # no valid depth
     assert vol.frames_integrated == 0
     grid = vol.dense_grid()
     assert np.all(grid.sdf.numpy() == SDF_NUMPY(grid.trunc))
@@ -195,13 +195,12 @@ def test_dense_brick_limit_is_a_clear_error():
         vol.dense_grid()
 
 
-def test_mesh_keeps_linear_colour():
-    vol = fuse(box_room(), K160, room_poses(1), FusionConfig(voxel_size=VOXEL, block_resolution=8),
-               color=np.array([0.25, 0.5, 0.75], np.float32))
-    mesh = vol.extract_mesh()
-    colours = mesh.vertex.colors.numpy()
-    assert len(colours) > 1000
-    np.testing.assert_allclose(colours, np.broadcast_to([0.25, 0.5, 0.75], colours.shape), atol=1e-3)
+def test_volume_holds_depth_only_and_meshes():
+    """No colour is fused (nothing reads it): 8 bytes a voxel, and the mesh (benchmarks/peers.py) still comes out."""
+    vol = fuse(box_room(), K160, room_poses(1), FusionConfig(voxel_size=VOXEL, block_resolution=8))
+    values = vol.vbg.hashmap().value_tensors()
+    assert sum(v[0].num_elements() * v.dtype.byte_size() for v in values) == 8 * 8 ** 3
+    assert len(vol.extract_mesh().vertex.positions) > 1000
 
 
 def test_bad_inputs_are_clear_errors(room):
@@ -210,11 +209,9 @@ def test_bad_inputs_are_clear_errors(room):
     bad = poses[0].copy()
     bad[0, 3] = np.nan
     with pytest.raises(ValueError, match="finite"):
-        vol.integrate(depth, None, K160, bad)
+        vol.integrate(depth, K160, bad)
     with pytest.raises(ValueError, match="depth shape"):
-        vol.integrate(depth[:-1], None, K160, poses[0])
-    with pytest.raises(ValueError, match="colour shape"):
-        vol.integrate(depth, np.zeros((2, 2, 3)), K160, poses[0])
+        vol.integrate(depth[:-1], K160, poses[0])
     with pytest.raises(ValueError, match="finite"):
         raycast_surface(grid, K160, bad, 0.1, 4.0)
     dirs, Y = make_direction_set(8, 2)
