@@ -35,6 +35,8 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
                                              "(lighting.every, default 1)")
     p.add_argument("--depth-filter", type=int, help="bilateral depth filter window in pixels, odd, 0 = off "
                                                     "(reconstruction.depth_filter_px, default 0)")
+    p.add_argument("--normal-smoothing", type=float, help="radius in voxels of the ray-cast normals' tangent mean, "
+                                                          "0 = off (reconstruction.normal_smoothing_voxels, default 0)")
     p.add_argument("--no-poses", action="store_true", help="ignore recorded poses and track the camera")
     p.add_argument("--shadows", choices=SHADOW_RENDERERS, help="shadow renderer (overrides [render] shadows)")
     p.add_argument("--video", action="store_true", help="also composite.mp4: the composites as a video "

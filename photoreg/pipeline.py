@@ -294,7 +294,8 @@ class Pipeline:
             if not hold or self.render is not None or self.exposure is not None:
                 with self._timed(t, "raycast"):
                     grid = self.volume.dense_grid()
-                    maps = raycast_surface(grid, self.intrinsics, pose, rc.depth_min, rc.depth_max, stride=lc.stride)
+                    maps = raycast_surface(grid, self.intrinsics, pose, rc.depth_min, rc.depth_max, stride=lc.stride,
+                                           normal_smoothing=rc.normal_smoothing_voxels)
             if hold:
                 self._held_for += 1
                 F, diag, gain = self._hold(prep, maps, pose, t)

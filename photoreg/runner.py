@@ -45,6 +45,7 @@ def session_from_args(args) -> Session:
                               ("bands", "lighting", "bands"), ("ray_length", "lighting", "ray_length"),
                               ("every", "lighting", "every"),
                               ("depth_filter", "reconstruction", "depth_filter_px"),
+                              ("normal_smoothing", "reconstruction", "normal_smoothing_voxels"),
                               ("voxel_size", "reconstruction", "voxel_size"), ("shadows", "render", "shadows")):
         v = getattr(args, opt)
         if v is not None:

@@ -257,6 +257,35 @@ def test_raycast_matches_truth_and_open3d(room):
         assert (angle_deg(maps.normal, n_o3d)[both] < 10.0).mean() > 0.98
 
 
+def test_normal_smoothing_averages_noise_and_keeps_edges():
+    """normal_smoothing (reconstruction.normal_smoothing_voxels): box_room fused from 4 views of depth with
+    Gaussian noise (sigma 5 mm, 2 cm voxels). Where the truth is smooth over the radius the tangent mean is much
+    closer to the true normals than each point's own; near edges no worse; the surface itself is unchanged."""
+    scene, poses = box_room(), room_poses(4)
+    rng = np.random.default_rng(0)
+    vol = TSDFVolume(FusionConfig(voxel_size=VOXEL, block_resolution=16), "cpu")
+    for pose in poses:
+        depth, _ = scene.render_depth(K320, pose)
+        vol.integrate(np.where(depth > 0, depth + rng.normal(0.0, 0.005, depth.shape), 0.0).astype(np.float32),
+                      K320, pose)
+    grid = vol.dense_grid()
+    for pose in poses[:2]:
+        plain = raycast_surface(grid, K320, pose, 0.1, 4.0)
+        smooth = raycast_surface(grid, K320, pose, 0.1, 4.0, normal_smoothing=3.0)
+        np.testing.assert_array_equal(plain.depth, smooth.depth)
+        d_true, n_true = scene.render_depth(K320, pose)
+        px = 4 * VOXEL / (np.median(d_true) / K320.fx)   # 4 voxels in pixels at the median depth
+        flat = smooth_region(n_true, d_true, int(np.ceil(px))) & plain.valid
+        edge = plain.valid & (d_true > 0) & ~smooth_region(n_true, d_true, int(np.ceil(px / 2)))
+        assert flat.mean() > 0.3 and edge.sum() > 200
+        e_plain, e_smooth = angle_deg(plain.normal, n_true), angle_deg(smooth.normal, n_true)
+        assert np.median(e_smooth[flat]) < 0.5 * np.median(e_plain[flat])   # 4.9 -> 0.6 degrees when written
+        assert np.percentile(e_smooth[edge], 90) < np.percentile(e_plain[edge], 90) + 1.0
+        np.testing.assert_allclose(np.linalg.norm(smooth.normal[smooth.valid], axis=-1), 1.0, atol=1e-5)
+    with pytest.raises(ValueError, match="normal_smoothing"):
+        raycast_surface(grid, K320, poses[0], 0.1, 4.0, normal_smoothing=-1.0)
+
+
 def test_raycast_stride_samples_every_nth_pixel(room):
     _, poses, _, grid = room
     full = raycast_surface(grid, K320, poses[1], 0.1, 4.0)

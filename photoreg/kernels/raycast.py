@@ -5,7 +5,12 @@ at the first observed + to - crossing: the sample before it lies inside a trunca
 +trunc), the one after it at or below zero. A jump from +trunc straight to negative within min_step
 is the border of unobserved space (which reads +trunc), not a surface, and is marched through. The
 crossing is refined by linear interpolation. Normals are the normalised central-difference gradient
-of the trilinear SDF, so they point toward free space (the camera side).
+of the trilinear SDF, so they point toward free space (the camera side); optionally (normal_smoothing) the
+mean of those normals over a 5 x 5 grid in the tangent plane, kept only where it stays within
+SMOOTH_FALLBACK_DEG of the point's own (edges and corners keep theirs). Depth noise reaches the lighting
+mostly through the normals: on the generated 12-frame tabletop, the ray-cast normals of a volume fused from
+the noise-free depth took the lighting from 9.2 to 4.7 degrees, si-RMSE 0.087 -> 0.074, the whole volume from
+it 0.067 (benchmarks/lighting_accuracy.md).
 """
 from __future__ import annotations
 
@@ -20,6 +25,9 @@ from photoreg.kernels.launch import launch_rows
 from photoreg.types import Intrinsics
 
 wp = init_warp()
+
+SMOOTH_GRID = 2              # normal_smoothing: tangent points -2..2 on each axis, radius / 2 apart
+SMOOTH_FALLBACK_DEG = 10.0   # a mean normal farther than this from the point's own is not taken
 
 
 @dataclass
@@ -54,10 +62,34 @@ def sdf_normal(sdf: wp.array3d(dtype=SDF_DTYPE), origin: wp.vec3, inv_voxel: flo
     return g / n
 
 
+@wp.func
+def smoothed_normal(sdf: wp.array3d(dtype=SDF_DTYPE), origin: wp.vec3, inv_voxel: float, trunc: float, h: float,
+                    p: wp.vec3, spacing: float, min_cos: float) -> wp.vec3:
+    """sdf_normal at p, or with spacing > 0 the mean of sdf_normal over the (2 SMOOTH_GRID + 1)^2 points
+    `spacing` apart in p's tangent plane when that mean is within acos(min_cos) of p's own."""
+    n0 = sdf_normal(sdf, origin, inv_voxel, trunc, h, p)
+    if spacing <= 0.0 or wp.length(n0) == 0.0:
+        return n0
+    a = wp.vec3(1.0, 0.0, 0.0)
+    if wp.abs(n0[0]) > 0.9:
+        a = wp.vec3(0.0, 1.0, 0.0)
+    t1 = wp.normalize(wp.cross(n0, a))
+    t2 = wp.cross(n0, t1)
+    g = wp.vec3(0.0, 0.0, 0.0)
+    for u in range(-SMOOTH_GRID, SMOOTH_GRID + 1):
+        for v in range(-SMOOTH_GRID, SMOOTH_GRID + 1):
+            g = g + sdf_normal(sdf, origin, inv_voxel, trunc, h, p + (t1 * float(u) + t2 * float(v)) * spacing)
+    n = wp.length(g)
+    if n < 1.0e-12 or wp.dot(g / n, n0) < min_cos:
+        return n0
+    return g / n
+
+
 @wp.kernel
 def _raycast(sdf: wp.array3d(dtype=SDF_DTYPE), empty: wp.array3d(dtype=wp.uint8), cell: int, origin: wp.vec3,
              voxel: float, trunc: float, rot: wp.mat33, cam: wp.vec3, fx: float, fy: float, cx: float, cy: float,
-             stride: int, depth_min: float, depth_max: float, min_step: float, row0: int,
+             stride: int, depth_min: float, depth_max: float, min_step: float, normal_spacing: float,
+             min_cos: float, row0: int,
              depth: wp.array2d(dtype=wp.float32), vertex: wp.array2d(dtype=wp.vec3),
              normal: wp.array2d(dtype=wp.vec3)):
     tr, c = wp.tid()
@@ -120,7 +152,7 @@ def _raycast(sdf: wp.array3d(dtype=SDF_DTYPE), empty: wp.array3d(dtype=wp.uint8)
     if z < depth_min or z > depth_max:
         return
     p = cam + d * t_hit
-    n = sdf_normal(sdf, origin, inv_voxel, trunc, voxel, p)
+    n = smoothed_normal(sdf, origin, inv_voxel, trunc, voxel, p, normal_spacing, min_cos)
     if wp.length(n) == 0.0:
         return
     depth[r, c] = z
@@ -130,17 +162,19 @@ def _raycast(sdf: wp.array3d(dtype=SDF_DTYPE), empty: wp.array3d(dtype=wp.uint8)
 
 def raycast_surface(grid: DenseGrid, intr: Intrinsics, pose_c2w: np.ndarray, depth_min: float, depth_max: float,
                     device: str | None = None, stride: int = 1, min_step_voxels: float = 0.5,
-                    threads: int | None = None) -> SurfaceMaps:
+                    normal_smoothing: float = 0.0, threads: int | None = None) -> SurfaceMaps:
     """Ray cast the brick from a camera (pose camera-to-world) at every `stride`-th pixel; returns
-    maps of shape (ceil(H / stride), ceil(W / stride)). device defaults to (and must match) the grid's;
-    on the CPU image rows are split over `threads` threads (photoreg.kernels.launch)."""
+    maps of shape (ceil(H / stride), ceil(W / stride)). normal_smoothing: radius in voxels of the tangent
+    mean of the normals (module docstring; 0 = each point's own). device defaults to (and must match) the
+    grid's; on the CPU image rows are split over `threads` threads (photoreg.kernels.launch)."""
     device = grid.device if device is None else str(wp.get_device(device))
     if device != grid.device:
         raise ValueError(f"raycast_surface: grid lives on {grid.device}, asked to run on {device}")
     pose = check_pose(pose_c2w, "raycast_surface")
-    if not (0 < depth_min < depth_max) or stride < 1 or min_step_voxels <= 0:
-        raise ValueError(f"raycast_surface: need 0 < depth_min < depth_max, stride >= 1, min_step_voxels > 0 "
-                         f"(got {depth_min}, {depth_max}, {stride}, {min_step_voxels})")
+    if not (0 < depth_min < depth_max) or stride < 1 or min_step_voxels <= 0 or not normal_smoothing >= 0:
+        raise ValueError(f"raycast_surface: need 0 < depth_min < depth_max, stride >= 1, min_step_voxels > 0, "
+                         f"normal_smoothing >= 0 (got {depth_min}, {depth_max}, {stride}, {min_step_voxels}, "
+                         f"{normal_smoothing})")
     intr.check("raycast_surface")
     h, w = -(-intr.height // stride), -(-intr.width // stride)
     depth = wp.zeros((h, w), dtype=wp.float32, device=device)
@@ -151,7 +185,9 @@ def raycast_surface(grid: DenseGrid, intr: Intrinsics, pose_c2w: np.ndarray, dep
                         float(grid.trunc),
                         wp.mat33(*pose[:3, :3].ravel()), wp.vec3(*pose[:3, 3]), float(intr.fx), float(intr.fy),
                         float(intr.cx), float(intr.cy), int(stride), float(depth_min), float(depth_max),
-                        float(min_step_voxels * grid.voxel_size)],
+                        float(min_step_voxels * grid.voxel_size),
+                        float(normal_smoothing * grid.voxel_size / SMOOTH_GRID),
+                        float(np.cos(np.radians(SMOOTH_FALLBACK_DEG)))],
                 outputs=[depth, vertex, normal])
     d = depth.numpy()
     return SurfaceMaps(depth=d, vertex=vertex.numpy(), normal=normal.numpy(), valid=d > 0, stride=stride,

@@ -65,7 +65,7 @@ class RenderStage:
         surface = None
         if x1 > x0 and y1 > y0:   # the real surface at every pixel of the window: what hides the objects, the seam
             surface = raycast_surface(grid, self.intrinsics.cropped(x0, y0, x1, y1), pose, rc.depth_min,
-                                      rc.depth_max, stride=1)
+                                      rc.depth_max, stride=1, normal_smoothing=rc.normal_smoothing_voxels)
             real_depth[y0:y1, x0:x1] = np.where(surface.depth > 0, surface.depth,
                                                 np.nan_to_num(sensor_depth[y0:y1, x0:x1]))
         gb = self.gbuffer.render(pose, real_depth, tolerance=0.5 * rc.voxel_size, window=(x0, y0, x1, y1))

@@ -39,7 +39,7 @@ ERROR_CODES = ("bad_message", "unknown_type", "missing_field", "bad_field", "bad
 LIGHTING_EXTRA = ("type", "dropped", "latency_ms", "queue_ms")
 # Reconstruction keys a client may set; block_count (memory) stays the server's.
 CLIENT_RECONSTRUCTION_KEYS = ("voxel_size", "trunc_voxels", "depth_min", "depth_max", "depth_filter_px",
-                              "depth_filter_m")
+                              "depth_filter_m", "normal_smoothing_voxels")
 _LEN = struct.Struct(">I")
 _PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 
