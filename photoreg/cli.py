@@ -133,6 +133,8 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--voxel-size", type=float)
     b.add_argument("--ray-length", type=float)
     b.add_argument("--every", type=int, default=1, help="estimate the lighting on every n-th frame (lighting.every)")
+    b.add_argument("--normal-smoothing", type=float,
+                   help="ray-cast normals' tangent mean, radius in voxels (reconstruction.normal_smoothing_voxels)")
     b.add_argument("--threads", type=int, help="CPU threads for the split kernel launches (default: all cores)")
     b.add_argument("--no-sun", action="store_true", help="without the traced light (lighting.sun = false)")
     b.add_argument("--no-history", action="store_true", help="the current view's samples only (lighting.history = 0)")

@@ -62,6 +62,7 @@ def bench_recording(session: Session, warmup: int = 2) -> dict:
         "threads": cpu_threads() if pipe.device == "cpu" else 0,
         "size": f"{rec.intrinsics.width}x{rec.intrinsics.height}", "frames_timed": len(timings),
         "stride": L.stride, "rays": L.rays, "bands": L.bands, "voxel_size": session.reconstruction.voxel_size,
+        "normal_smoothing_voxels": session.reconstruction.normal_smoothing_voxels,
         "ray_length": L.ray_length, "every": L.every, "sun": L.sun, "bounce": L.bounce, "history": L.history,
         "objects": len(session.objects), "shadows": session.render.shadows if session.objects else None,
         "ms_mean": {s: round(float(np.mean([t.get(s, 0.0) for t in timings])), 3) for s in stages},
@@ -92,6 +93,8 @@ def speed_command(args) -> int:
         s.lighting.ray_length = args.ray_length
     s.lighting.sun, s.lighting.bounce = not args.no_sun, not args.no_bounce
     s.lighting.every = args.every
+    if args.normal_smoothing is not None:
+        s.reconstruction.normal_smoothing_voxels = args.normal_smoothing
     if args.no_history:
         s.lighting.history = 0
     validate(s)
