@@ -31,7 +31,7 @@ class ReconstructionConfig:
     trunc_voxels: float = 4.0     # truncation distance in voxels
     depth_min: float = 0.1        # metres
     depth_max: float = 4.0        # metres
-    block_count: int = 6000       # initial Open3D hash-map capacity in 16^3-voxel blocks (~80 B/voxel: 500 MB); grows on demand
+    block_count: int = 6000       # initial Open3D hash-map capacity in 16^3-voxel blocks (32 KB each: 200 MB); grows on demand
     # Edge-preserving (bilateral) filter of the depth before fusion and sampling, as KinectFusion does: a window
     # of this many pixels (odd; 0 = off), spatial sigma half of it (rounded down), range sigma depth_filter_m
     # (steps larger than a few of it are kept). Generated scenes (12 frames): 9 px / 2 cm took tabletop to 6.1 deg

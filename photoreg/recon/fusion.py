@@ -31,7 +31,7 @@ class FusionConfig:
     voxel_size: float = 0.01
     block_resolution: int = 16         # voxels per block edge
     block_count: int = 4000            # initial hash map capacity; Open3D doubles it when full. Each
-                                       # block preallocates res^3 * 20 bytes (80 KB at res 16)
+                                       # block preallocates res^3 * 8 bytes (32 KB at res 16)
     trunc_voxels: float = 4.0          # truncation distance in voxels
     depth_min: float = 0.1             # depth below this is ignored (sensor near limit)
     depth_max: float = 4.0             # depth beyond this is ignored

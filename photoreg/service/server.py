@@ -51,7 +51,7 @@ class ServerConfig:
     queue: int = 2                # frames waiting per connection before the oldest is dropped
     idle_timeout: float = 300.0   # s without a message (and no frame in work) before closing; <= 0: never
     shutdown_timeout: float = 10.0  # s to finish in-flight frames on shutdown
-    block_count: int = 4000       # initial TSDF hash capacity per session (80 KB per block, grows when full):
+    block_count: int = 4000       # initial TSDF hash capacity per session (32 KB per block, grows when full):
                                   # the memory a connection costs, so the server's to choose, not the client's
     limits: Limits = field(default_factory=Limits)
     meshes: str | None = None     # folder of the meshes that clients' objects name (None: no objects)
