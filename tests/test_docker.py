@@ -77,6 +77,9 @@ def test_dockerfile_instructions(kind):
     assert [exec_form(a) for a in args_of(path, "ENTRYPOINT")] == [["photoreg"]]
     (cmd,) = [exec_form(a) for a in args_of(path, "CMD")]
     assert cmd[:5] == ["serve", "--host", "0.0.0.0", "--port", PORT], f"{path}: default command {cmd}"
+    # objects work out of the box: the default mesh folder is the demo's, copied into the image at /app
+    assert cmd[5:7] == ["--meshes", "/app/data/demo"] and ". /app" in args_of(path, "COPY")
+    assert (REPO / "data" / "demo" / "object.obj").is_file()
     assert args_of(path, "EXPOSE") == [PORT]
     assert PORT in " ".join(healthcheck_command(path))
 
