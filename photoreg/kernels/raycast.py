@@ -14,6 +14,7 @@ it 0.067 (benchmarks/lighting_accuracy.md).
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -28,6 +29,7 @@ wp = init_warp()
 
 SMOOTH_GRID = 2              # normal_smoothing: tangent points -2..2 on each axis, radius / 2 apart
 SMOOTH_FALLBACK_DEG = 10.0   # a mean normal farther than this from the point's own is not taken
+SMOOTH_MIN_COS = math.cos(math.radians(SMOOTH_FALLBACK_DEG))
 
 
 @dataclass
@@ -187,7 +189,7 @@ def raycast_surface(grid: DenseGrid, intr: Intrinsics, pose_c2w: np.ndarray, dep
                         float(intr.cx), float(intr.cy), int(stride), float(depth_min), float(depth_max),
                         float(min_step_voxels * grid.voxel_size),
                         float(normal_smoothing * grid.voxel_size / SMOOTH_GRID),
-                        float(np.cos(np.radians(SMOOTH_FALLBACK_DEG)))],
+                        SMOOTH_MIN_COS],
                 outputs=[depth, vertex, normal])
     d = depth.numpy()
     return SurfaceMaps(depth=d, vertex=vertex.numpy(), normal=normal.numpy(), valid=d > 0, stride=stride,
