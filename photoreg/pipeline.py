@@ -69,7 +69,8 @@ class Pipeline:
         fixed = self.solver_cfg.select == "fixed"
         self.bounce = lc.bounce and fixed
         self.sun = (SunSearch(SunConfig(candidates=lc.sun_candidates, samples=lc.sun_samples,
-                                         min_gain=lc.sun_min_gain, rays=lc.sun_rays))
+                                         min_gain=lc.sun_min_gain, rays=lc.sun_rays,
+                                         refine_every=lc.sun_refine_every))
                     if lc.sun and fixed else None)
         self.render = None  # virtual objects (issue 5): RenderStage, built before any frame
         if session.objects:

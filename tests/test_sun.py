@@ -128,6 +128,37 @@ def test_search_finds_the_sun_from_its_shadows_and_the_joint_solve_fits_it():
     assert joint.diagnostics.residual_rms < 0.2 * sol.diagnostics.residual_rms
 
 
+def test_a_held_light_is_refined_every_refine_every_frames_and_held_between():
+    """Between refinements (SunConfig.refine_every) the search traces nothing, needs no solution and returns the
+    light as last refined; with refine_every 1 every frame with a light held is refined (traced again)."""
+    rng = np.random.default_rng(1)
+    radiance, transfer, normals, _, _, _, (axis, cos_r) = model_samples(rng)
+    sol = solve(radiance, transfer, normals, np.ones(len(normals)), SolverConfig(bands=5, **ROBUST))
+    points = scattered(len(normals))
+
+    def run(refine_every):
+        search, traced, found = SunSearch(SunConfig(refine_every=refine_every)), [], []
+
+        def trace(idx, dirs):
+            traced[-1] += len(dirs)
+            return visible(normals[idx], axis[idx], cos_r[idx], dirs)
+
+        for _ in range(6):
+            traced.append(0)
+            due = search.due()
+            found.append(search(trace, sol if due else None, radiance, lambda idx: transfer[idx], normals, points))
+        return traced, found
+
+    traced, found = run(5)
+    assert traced[0] == traced[5] > 0 and traced[1:5] == [0] * 4   # coarse + refined, held, the next coarse pass
+    assert all(f is found[0] for f in found[1:5]) and found[5] is not None
+    assert math.degrees(math.acos(min(1.0, found[0].direction @ SUN))) < 2.0
+    traced, found = run(1)
+    assert all(0 < t < traced[0] for t in traced[1:5]) and all(f is not None for f in found)   # refined alone
+    with pytest.raises(ValueError, match="refine_every"):
+        SunConfig(refine_every=0)
+
+
 def test_a_shadow_with_a_region_of_its_own_on_the_floor_still_reveals_the_sun():
     """A floor lit by a sky and a sun, with the shadow of a ball that the camera does not see: the sky-tinted
     shadow gets an albedo region of its own, whose albedo would explain the shadow away; the search scores

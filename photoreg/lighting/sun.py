@@ -27,9 +27,11 @@ Search for d, given the frame's solve without it (its samples, albedo regions, w
   3. a distant light does not move: the coarse gains (as shares of the frame's residual) are accumulated
      over frames with a forgetting factor (`memory` coarse passes) and the best accumulated direction is refined
      in the frame by two cones of REFINE_DIRS directions, at the coarse spacing and a third of it. The
-     coarse pass (most of the rays) runs every `coarse_every` frames; in between, while a light is held,
-     only the refinement runs, from the same accumulated best coarse direction (not from the last refined
-     one: refining a refinement drifts), and with no light held nothing runs;
+     coarse pass (most of the rays) runs every `coarse_every` frames; while a light is held the refinement
+     runs every `refine_every` frames (the coarse passes refine too), from the same accumulated best coarse
+     direction (not from the last refined one: refining a refinement drifts); the frames between hold the
+     last refined light (they need no solve of the current view alone: the pipeline's solve then runs once),
+     and with no light held nothing runs;
   4. a light is held from one coarse pass to the next when the accumulated mean gain of its direction is
      at least `min_gain` of the residual: evidence over frames, so that a light near the threshold does not
      blink on and off; otherwise none is claimed (a single plane or an overcast sky gives none).
@@ -65,6 +67,7 @@ class SunConfig:
     search_regularization: float = 1e-4  # relative Tikhonov strength of the scoring fit (step 2)
     memory: float = 10.0         # coarse passes over which their gains are accumulated
     coarse_every: int = 5        # frames between coarse passes (between them: refinement of a held light only)
+    refine_every: int = 5        # frames between refinements of a held light (between them it is held as refined)
     rays: int = 8                # rays over the light's disc for its final transfer
     angle: float = ANGLE_DEFAULT  # the light's angular radius (not measured: shading cannot tell it)
     seed: int = 0
@@ -73,9 +76,10 @@ class SunConfig:
         if not (self.candidates >= 8 and self.samples >= 10 and 0 <= self.min_gain < 1 and 0 <= self.min_lit < 1
                 and self.rays >= 1
                 and 0 < self.angle < math.pi / 2 and self.search_regularization >= 0 and self.memory >= 1
-                and self.coarse_every >= 1):
+                and self.coarse_every >= 1 and self.refine_every >= 1):
             raise ValueError("sun: need candidates >= 8, samples >= 10, 0 <= min_gain < 1, 0 <= min_lit < 1, rays >= 1, "
-                             f"0 < angle < 90 degrees, search_regularization >= 0, memory >= 1, coarse_every >= 1 (got {self})")
+                             "0 < angle < 90 degrees, search_regularization >= 0, memory >= 1, coarse_every >= 1, "
+                             f"refine_every >= 1 (got {self})")
 
 
 @dataclass
@@ -128,12 +132,14 @@ class SunSearch:
         self.votes = np.zeros(cfg.candidates)  # forgetting sums of the coarse passes' gain shares ...
         self.weight = 0.0                      # ... and of the passes themselves: votes / weight = mean share
         self.held: np.ndarray | None = None    # the accumulated best coarse direction while a light is held
+        self.last: Sun | None = None           # the latest refined light, held between refinements
         self.frames = 0
 
     def due(self) -> bool:
         """Whether the next frame is searched (a coarse pass, or a held light refined); if not, the call may
         pass no solution (the pipeline then skips the current view's own solve)."""
-        return self.frames % self.cfg.coarse_every == 0 or self.held is not None
+        cfg = self.cfg
+        return self.frames % cfg.coarse_every == 0 or (self.held is not None and self.frames % cfg.refine_every == 0)
 
     def __call__(self, trace: Callable[[np.ndarray, np.ndarray], np.ndarray], sol: Solution | None,
                  radiance: np.ndarray, design: Callable[[np.ndarray], np.ndarray], normals: np.ndarray,
@@ -143,9 +149,9 @@ class SunSearch:
         design (the SH transfer and any other extra terms' columns); trace(idx, dirs) the visibility
         (len(idx), D) bool of directions dirs (D, 3) from the samples idx."""
         cfg = self.cfg
-        if not self.due():   # a frame between coarse passes with no light held: nothing to search
+        if not self.due():   # between searches: the held light as last refined (None when none is held)
             self.frames += 1
-            return None
+            return self.last if self.held is not None else None
         if sol is None or sol.samples is None or sol.system is None or int((sol.weights > 0).sum()) < 10:
             return None
         coarse = self.frames % cfg.coarse_every == 0
@@ -166,6 +172,7 @@ class SunSearch:
             j = int(np.argmax(self.votes))
             self.held = self.coarse[j] if self.votes[j] >= cfg.min_gain * self.weight else None
         if self.held is None:
+            self.last = None
             return None
         best, best_gain = self.held, -math.inf   # the first cone holds the start direction itself
         spacing = math.sqrt(4 * math.pi / cfg.candidates)
@@ -175,7 +182,8 @@ class SunSearch:
             j = int(np.argmax(g))
             if g[j] > best_gain:
                 best, best_gain = dirs[j] / np.linalg.norm(dirs[j]), float(g[j])
-        return Sun(direction=best, angle=cfg.angle, gain=best_gain)
+        self.last = Sun(direction=best, angle=cfg.angle, gain=best_gain)
+        return self.last
 
 
 def _search_inputs(sol: Solution, radiance, design, normals, points, cfg: SunConfig):
