@@ -19,6 +19,8 @@
 #   every      the lighting estimated on every n-th frame (lighting.every, --every): TUM alone and with the bunny
 #              at stride 4 / 64 rays / 3 bands, alone at stride 1 / 169 rays / 4 bands, the demo with its traced
 #              light; the settings alternate (calls differ by 20-40%); every run's figures into OUTDIR/every.json
+#   refine     the demo alone and with its object, its held light refined every 5th frame (lighting.sun_refine_every
+#              5) against every frame (1, the default), alternating, two rounds (OUTDIR/refine.json)
 #   live       `photoreg serve --device cuda --meshes $PHOTOREG_DATA/meshes` and `photoreg stream RECORDING --session
 #              sessions/tum_fr1_rpy.toml` through it (the bunny composited by the server, JPEG back), every 1 and 4:
 #              frames/s and latency as a client sees them (OUTDIR/live_n*.json, the stream's summary.json)
@@ -98,6 +100,23 @@ for step in "$@"; do
           --bands $4 --every $5 --json "/tmp/every/$(ls /tmp/every | wc -l)_$1_s$2_n$5.json" 2>/dev/null
       done
       python3 -c "import json, pathlib, sys; fs = sorted(pathlib.Path('/tmp/every').glob('*.json'), key=lambda p: int(p.name.split('_')[0])); json.dump([dict(json.loads(f.read_text()), run=f.stem) for f in fs], open(sys.argv[1], 'w'), indent=1)" "$out/every.json" ;;
+    refine)
+      # A held light refined every 5th frame (lighting.sun_refine_every 5) against every frame (1, the default),
+      # alternating, two rounds: the demo (its traced light held from the first frames), alone and with its object.
+      mkdir -p /tmp/refine
+      for k in 5 1; do
+        printf '[recording]\npath = "%s/data/demo"\n[lighting]\nsun_refine_every = %s\n' "$PWD" $k > /tmp/refine/bare$k.toml
+        sed -e "s#^path = .*#path = \"$PWD/data/demo\"#" -e "s#^mesh = \"#mesh = \"$PWD/data/demo/#" \
+          data/demo/session.toml > /tmp/refine/object$k.toml
+        printf '[lighting]\nsun_refine_every = %s\n' $k >> /tmp/refine/object$k.toml
+      done
+      for round in 1 2; do
+        for run in bare5 bare1 object5 object1; do
+          python3 -m photoreg bench speed /tmp/refine/$run.toml --device cuda --frames 0:30 --warmup 3 --stride 4 \
+            --rays 64 --bands 5 --json "/tmp/refine/${run}_$round.json" 2>/dev/null
+        done
+      done
+      python3 -c "import json, pathlib, sys; json.dump({f.stem: json.loads(f.read_text()) for f in sorted(pathlib.Path('/tmp/refine').glob('*.json'))}, open(sys.argv[1], 'w'), indent=1)" "$out/refine.json" ;;
     live)
       python3 -m photoreg serve --device cuda --port 8765 --meshes "$PHOTOREG_DATA/meshes" > /tmp/serve.log 2>&1 &
       srv=$!

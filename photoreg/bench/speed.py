@@ -64,6 +64,7 @@ def bench_recording(session: Session, warmup: int = 2) -> dict:
         "stride": L.stride, "rays": L.rays, "bands": L.bands, "voxel_size": session.reconstruction.voxel_size,
         "normal_smoothing_voxels": session.reconstruction.normal_smoothing_voxels,
         "ray_length": L.ray_length, "every": L.every, "sun": L.sun, "bounce": L.bounce, "history": L.history,
+        "sun_refine_every": L.sun_refine_every,
         "objects": len(session.objects), "shadows": session.render.shadows if session.objects else None,
         "ms_mean": {s: round(float(np.mean([t.get(s, 0.0) for t in timings])), 3) for s in stages},
         "ms_p95": {s: round(float(np.percentile([t.get(s, 0.0) for t in timings], 95)), 3) for s in stages},

@@ -67,7 +67,7 @@ class SunConfig:
     search_regularization: float = 1e-4  # relative Tikhonov strength of the scoring fit (step 2)
     memory: float = 10.0         # coarse passes over which their gains are accumulated
     coarse_every: int = 5        # frames between coarse passes (between them: refinement of a held light only)
-    refine_every: int = 5        # frames between refinements of a held light (between them it is held as refined)
+    refine_every: int = 1        # frames between refinements of a held light (between them it is held as refined)
     rays: int = 8                # rays over the light's disc for its final transfer
     angle: float = ANGLE_DEFAULT  # the light's angular radius (not measured: shading cannot tell it)
     seed: int = 0
