@@ -20,7 +20,7 @@
 #              at stride 4 / 64 rays / 3 bands, alone at stride 1 / 169 rays / 4 bands, the demo with its traced
 #              light; the settings alternate (calls differ by 20-40%); every run's figures into OUTDIR/every.json
 #   refine     the demo alone and with its object, its held light refined every 5th frame (lighting.sun_refine_every
-#              5) against every frame (1, the default), alternating, two rounds (OUTDIR/refine.json)
+#              5, the default) against every frame (1), alternating, two rounds (OUTDIR/refine.json)
 #   live       `photoreg serve --device cuda --meshes $PHOTOREG_DATA/meshes` and `photoreg stream RECORDING --session
 #              sessions/tum_fr1_rpy.toml` through it (the bunny composited by the server, JPEG back), every 1 and 4:
 #              frames/s and latency as a client sees them (OUTDIR/live_n*.json, the stream's summary.json)
@@ -101,7 +101,7 @@ for step in "$@"; do
       done
       python3 -c "import json, pathlib, sys; fs = sorted(pathlib.Path('/tmp/every').glob('*.json'), key=lambda p: int(p.name.split('_')[0])); json.dump([dict(json.loads(f.read_text()), run=f.stem) for f in fs], open(sys.argv[1], 'w'), indent=1)" "$out/every.json" ;;
     refine)
-      # A held light refined every 5th frame (lighting.sun_refine_every 5) against every frame (1, the default),
+      # A held light refined every 5th frame (lighting.sun_refine_every 5, the default) against every frame (1),
       # alternating, two rounds: the demo (its traced light held from the first frames), alone and with its object.
       mkdir -p /tmp/refine
       for k in 5 1; do

@@ -108,13 +108,12 @@ class LightingConfig:
     sun_min_gain: float = 0.05    # hold a light whose mean share of the residual explained is at least this
     sun_rays: int = 8             # rays over the light's disc in the joint solve
     # Frames between refinements of a held light's direction; the frames between hold it as last refined and
-    # need no solve of the current view alone (photoreg.lighting.sun): one solve a frame instead of two plus the
-    # refinement. A speed setting for light that does not change: 5 (the coarse passes' spacing) made the demo
-    # 1.3-1.9x faster on the H100 (benchmarks/gpu.md) and scored as 1 on average over the generated recordings
-    # that hold a light (benchmarks/lighting_accuracy.md, rows "sun_refine_every 5"), but a light switched
-    # mid-recording is then fitted with the stale direction until the next pass: the switch is not flagged
-    # and followed a few frames later (tests/test_history.py).
-    sun_refine_every: int = 1
+    # need no solve of the current view alone (photoreg.lighting.sun), one solve a frame instead of two plus
+    # the refinement, unless the joint fit with it turns stale (a light switched: refined then after all).
+    # 5 (the coarse passes' spacing) against 1: the demo's median frame 1.25-1.9x faster on the H100
+    # (benchmarks/gpu.md), the same mean accuracy over the generated recordings that hold a light
+    # (benchmarks/lighting_accuracy.md, rows "sun_refine_every 1"; per recording within +-0.02 si-RMSE).
+    sun_refine_every: int = 5
     # Tikhonov strength (relative, as `regularization`) of the SH part in the joint solve with a traced light.
     # With the light apart the SH holds only the smooth sky and the bounce; at 1e-2 it also took up the
     # light's share (generated tabletop: irradiance too flat, sun/sky 0.56 of the truth). si-RMSE, tabletop /

@@ -179,7 +179,8 @@ class Pipeline:
         current view's, or those and the history's), jointly with the traced light when one is held. The light
         is searched from the current view's samples and their own solve (its shadows; the history's samples
         would dilute them); with a history that own solve runs only on frames the search is due (a coarse
-        pass, or a held light refined)."""
+        pass, or a held light refined); a held light whose joint fit is stale (SunSearch.stale) is refined in
+        the frame after all."""
         with self._timed(t, "solve"):
             alone = data is current or self._search_due()   # else the search needs no solution (Sun.due)
             own_terms = self._terms(current) if alone else []
@@ -194,6 +195,9 @@ class Pipeline:
                 split = None if data is current else len(current)
                 joint = self._solve(data, previous, terms, grid, sun, start=own if split is None else None,
                                     current=split)
+            if self.sun.stale(joint.diagnostics.residual_rms) and not alone:
+                self.sun.recheck()
+                return self._lighting(grid, current, data, previous, t)
             if joint.terms["sun"] @ sh.LUMINANCE > 0:
                 return sun, joint, own
             sun = None

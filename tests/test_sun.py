@@ -159,6 +159,19 @@ def test_a_held_light_is_refined_every_refine_every_frames_and_held_between():
         SunConfig(refine_every=0)
 
 
+def test_a_stale_joint_fit_has_the_held_light_refined_in_that_frame():
+    """SunSearch.stale: a joint fit's residual over STALE_FACTOR times the median of the previous ones; recheck
+    then has the same frame searched again as a refinement (not a coarse pass), and the schedule goes on."""
+    search = SunSearch(SunConfig(refine_every=5))
+    assert not any(search.stale(r) for r in (0.06, 0.07, 0.065, 0.062))   # fewer than 3 before: never stale
+    assert search.stale(0.1) and not search.stale(0.07)
+    search.frames, search.held = 2, SUN
+    assert not search.due()
+    search.frames += 1        # frame 2 held its light ...
+    search.recheck()          # ... and its joint fit was stale: frame 2 is searched again
+    assert search.due() and search.frames == 2
+
+
 def test_a_shadow_with_a_region_of_its_own_on_the_floor_still_reveals_the_sun():
     """A floor lit by a sky and a sun, with the shadow of a ball that the camera does not see: the sky-tinted
     shadow gets an albedo region of its own, whose albedo would explain the shadow away; the search scores

@@ -31,7 +31,9 @@ Search for d, given the frame's solve without it (its samples, albedo regions, w
      runs every `refine_every` frames (the coarse passes refine too), from the same accumulated best coarse
      direction (not from the last refined one: refining a refinement drifts); the frames between hold the
      last refined light (they need no solve of the current view alone: the pipeline's solve then runs once),
-     and with no light held nothing runs;
+     unless the joint fit with it is worse than usual (`stale`: its residual over STALE_FACTOR times the median
+     of the last STALE_FRAMES joint fits; a light switched mid-recording), which refines it in that frame after
+     all; with no light held nothing runs;
   4. a light is held from one coarse pass to the next when the accumulated mean gain of its direction is
      at least `min_gain` of the residual: evidence over frames, so that a light near the threshold does not
      blink on and off; otherwise none is claimed (a single plane or an overcast sky gives none).
@@ -40,6 +42,7 @@ Tracing is passed in as a function, so this module stays numpy-only and testable
 from __future__ import annotations
 
 import math
+from collections import deque
 from dataclasses import dataclass
 from typing import Callable
 
@@ -54,6 +57,8 @@ REFINE_DIRS = 24     # directions per refinement cone
 PATCH_SHARE = 0.25   # search: a region with fewer samples on the floor's plane than this share of the floor region's
                      # own is scored there with the floor's albedo (module docstring, step 2)
 REFINE_LEVELS = (1.0, 1.0 / 3.0)  # cone radii in units of the coarse spacing
+STALE_FACTOR = 1.3   # a held light is refined after all where the joint fit's residual is over this times ...
+STALE_FRAMES = 10    # ... the median of the last this many joint fits (module docstring, step 3)
 
 
 @dataclass
@@ -67,7 +72,7 @@ class SunConfig:
     search_regularization: float = 1e-4  # relative Tikhonov strength of the scoring fit (step 2)
     memory: float = 10.0         # coarse passes over which their gains are accumulated
     coarse_every: int = 5        # frames between coarse passes (between them: refinement of a held light only)
-    refine_every: int = 1        # frames between refinements of a held light (between them it is held as refined)
+    refine_every: int = 5        # frames between refinements of a held light (between them it is held as refined)
     rays: int = 8                # rays over the light's disc for its final transfer
     angle: float = ANGLE_DEFAULT  # the light's angular radius (not measured: shading cannot tell it)
     seed: int = 0
@@ -133,13 +138,28 @@ class SunSearch:
         self.weight = 0.0                      # ... and of the passes themselves: votes / weight = mean share
         self.held: np.ndarray | None = None    # the accumulated best coarse direction while a light is held
         self.last: Sun | None = None           # the latest refined light, held between refinements
+        self.residuals: deque = deque(maxlen=STALE_FRAMES)  # residual rms of the latest joint fits
+        self.forced = False                    # the frame is searched again (recheck)
         self.frames = 0
 
     def due(self) -> bool:
         """Whether the next frame is searched (a coarse pass, or a held light refined); if not, the call may
         pass no solution (the pipeline then skips the current view's own solve)."""
         cfg = self.cfg
-        return self.frames % cfg.coarse_every == 0 or (self.held is not None and self.frames % cfg.refine_every == 0)
+        return (self.forced or self.frames % cfg.coarse_every == 0
+                or (self.held is not None and self.frames % cfg.refine_every == 0))
+
+    def stale(self, residual_rms: float) -> bool:
+        """Record the residual rms of a joint fit with the light; whether it is over STALE_FACTOR times the median
+        of the previous ones (at least 3): the held light no longer fits as it did."""
+        worse = len(self.residuals) >= 3 and residual_rms > STALE_FACTOR * float(np.median(self.residuals))
+        self.residuals.append(residual_rms)
+        return worse
+
+    def recheck(self) -> None:
+        """Search the frame just searched again, as a refinement of the held light (its joint fit was stale)."""
+        self.frames -= 1
+        self.forced = True
 
     def __call__(self, trace: Callable[[np.ndarray, np.ndarray], np.ndarray], sol: Solution | None,
                  radiance: np.ndarray, design: Callable[[np.ndarray], np.ndarray], normals: np.ndarray,
@@ -156,6 +176,7 @@ class SunSearch:
             return None
         coarse = self.frames % cfg.coarse_every == 0
         self.frames += 1
+        self.forced = False
         A, I, w, rho, nrm, idx = _search_inputs(sol, radiance, design, normals, points, cfg)
         lam = cfg.search_regularization
 
