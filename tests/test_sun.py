@@ -143,18 +143,20 @@ def test_a_held_light_is_refined_every_refine_every_frames_and_held_between():
             traced[-1] += len(dirs)
             return visible(normals[idx], axis[idx], cos_r[idx], dirs)
 
-        for _ in range(6):
+        for _ in range(11):
             traced.append(0)
             due = search.due()
             found.append(search(trace, sol if due else None, radiance, lambda idx: transfer[idx], normals, points))
         return traced, found
 
     traced, found = run(5)
-    assert traced[0] == traced[5] > 0 and traced[1:5] == [0] * 4   # coarse + refined, held, the next coarse pass
-    assert all(f is found[0] for f in found[1:5]) and found[5] is not None
+    # frame 0: coarse pass and refinement; 1-4: a new light, refined every frame; 5 and 10: coarse passes;
+    # 6-9: held as refined at frame 5, nothing traced
+    assert traced[0] == traced[5] == traced[10] > 0 and all(0 < t < traced[0] for t in traced[1:5])
+    assert traced[6:10] == [0] * 4 and all(f is found[5] for f in found[6:10])
     assert math.degrees(math.acos(min(1.0, found[0].direction @ SUN))) < 2.0
     traced, found = run(1)
-    assert all(0 < t < traced[0] for t in traced[1:5]) and all(f is not None for f in found)   # refined alone
+    assert all(0 < t < traced[0] for t in traced[6:10]) and all(f is not None for f in found)   # refined alone
     with pytest.raises(ValueError, match="refine_every"):
         SunConfig(refine_every=0)
 
@@ -165,11 +167,11 @@ def test_a_stale_joint_fit_has_the_held_light_refined_in_that_frame():
     search = SunSearch(SunConfig(refine_every=5))
     assert not any(search.stale(r) for r in (0.06, 0.07, 0.065, 0.062))   # 3 recorded, then within 1.3x
     assert search.stale(0.1) and not search.stale(0.07)
-    search.frames, search.held = 2, SUN
+    search.frames, search.held, search.held_since = 7, SUN, 0
     assert not search.due()
-    search.frames += 1        # frame 2 held its light ...
-    search.recheck()          # ... and its joint fit was stale: frame 2 is searched again
-    assert search.due() and search.frames == 2
+    search.frames += 1        # frame 7 held its light ...
+    search.recheck()          # ... and its joint fit was stale: frame 7 is searched again
+    assert search.due() and search.frames == 7
 
 
 def test_a_shadow_with_a_region_of_its_own_on_the_floor_still_reveals_the_sun():

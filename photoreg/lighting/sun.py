@@ -28,7 +28,8 @@ Search for d, given the frame's solve without it (its samples, albedo regions, w
      over frames with a forgetting factor (`memory` coarse passes) and the best accumulated direction is refined
      in the frame by two cones of REFINE_DIRS directions, at the coarse spacing and a third of it. The
      coarse pass (most of the rays) runs every `coarse_every` frames; while a light is held the refinement
-     runs every `refine_every` frames (the coarse passes refine too), from the same accumulated best coarse
+     runs every `refine_every` frames (the coarse passes refine too; every frame during the first
+     `coarse_every` frames a light is held), from the same accumulated best coarse
      direction (not from the last refined one: refining a refinement drifts); the frames between hold the
      last refined light (they need no solve of the current view alone: the pipeline's solve then runs once),
      unless the joint fit with it is worse than usual (`stale`: its residual over STALE_FACTOR times the median
@@ -137,6 +138,7 @@ class SunSearch:
         self.votes = np.zeros(cfg.candidates)  # forgetting sums of the coarse passes' gain shares ...
         self.weight = 0.0                      # ... and of the passes themselves: votes / weight = mean share
         self.held: np.ndarray | None = None    # the accumulated best coarse direction while a light is held
+        self.held_since: int | None = None     # the frame from which a light has been held
         self.last: Sun | None = None           # the latest refined light, held between refinements
         self.residuals: deque = deque(maxlen=STALE_FRAMES)  # residual rms of the latest joint fits
         self.forced = False                    # the frame is searched again (recheck)
@@ -146,8 +148,12 @@ class SunSearch:
         """Whether the next frame is searched (a coarse pass, or a held light refined); if not, the call may
         pass no solution (the pipeline then skips the current view's own solve)."""
         cfg = self.cfg
-        return (self.forced or self.frames % cfg.coarse_every == 0
-                or (self.held is not None and self.frames % cfg.refine_every == 0))
+        if self.held is None:
+            return self.forced or self.frames % cfg.coarse_every == 0
+        # a light held for less than coarse_every frames is refined every frame: its first refinements rest on
+        # few views (generated coloured orbit: frame 0's 10.6 degrees off, frames 1-4's 6.3-3.3)
+        young = self.held_since is not None and self.frames - self.held_since < cfg.coarse_every
+        return self.forced or young or self.frames % cfg.refine_every == 0 or self.frames % cfg.coarse_every == 0
 
     def stale(self, residual_rms: float) -> bool:
         """Record the residual rms of a joint fit with the light; whether it is over STALE_FACTOR times the median
@@ -193,8 +199,10 @@ class SunSearch:
             j = int(np.argmax(self.votes))
             self.held = self.coarse[j] if self.votes[j] >= cfg.min_gain * self.weight else None
         if self.held is None:
-            self.last = None
+            self.last = self.held_since = None
             return None
+        if self.held_since is None:
+            self.held_since = self.frames - 1
         best, best_gain = self.held, -math.inf   # the first cone holds the start direction itself
         spacing = math.sqrt(4 * math.pi / cfg.candidates)
         for level in REFINE_LEVELS:
