@@ -110,9 +110,9 @@ class LightingConfig:
     # Frames between refinements of a held light's direction; the frames between hold it as last refined and
     # need no solve of the current view alone (photoreg.lighting.sun), one solve a frame instead of two plus
     # the refinement, unless the joint fit with it turns stale (a light switched: refined then after all).
-    # 5 (the coarse passes' spacing) against 1: the demo's median frame 1.25-1.9x faster on the H100
-    # (benchmarks/gpu.md), the same mean accuracy over the generated recordings that hold a light
-    # (benchmarks/lighting_accuracy.md, rows "sun_refine_every 1"; per recording within +-0.02 si-RMSE).
+    # 5 (the coarse passes' spacing; a newly held light is refined every frame for 5 frames) against 1: the
+    # demo's median frame 1.5-1.6x faster on the H100 (benchmarks/gpu.md), the same mean accuracy over the
+    # generated recordings that hold a light (benchmarks/lighting_accuracy.md, rows "sun_refine_every 1").
     sun_refine_every: int = 5
     # Tikhonov strength (relative, as `regularization`) of the SH part in the joint solve with a traced light.
     # With the light apart the SH holds only the smooth sky and the bounce; at 1e-2 it also took up the
