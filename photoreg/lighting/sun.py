@@ -148,12 +148,11 @@ class SunSearch:
         """Whether the next frame is searched (a coarse pass, or a held light refined); if not, the call may
         pass no solution (the pipeline then skips the current view's own solve)."""
         cfg = self.cfg
-        if self.held is None:
-            return self.forced or self.frames % cfg.coarse_every == 0
         # a light held for less than coarse_every frames is refined every frame: its first refinements rest on
         # few views (generated coloured orbit: frame 0's 10.6 degrees off, frames 1-4's 6.3-3.3)
         young = self.held_since is not None and self.frames - self.held_since < cfg.coarse_every
-        return self.forced or young or self.frames % cfg.refine_every == 0 or self.frames % cfg.coarse_every == 0
+        refine = self.held is not None and (young or self.frames % cfg.refine_every == 0)
+        return self.forced or refine or self.frames % cfg.coarse_every == 0
 
     def stale(self, residual_rms: float) -> bool:
         """Record the residual rms of a joint fit with the light; whether it is over STALE_FACTOR times the median
