@@ -214,6 +214,28 @@ def test_split_off_plane_takes_an_object_out_of_the_floor_region():
     assert (alb.split_off_plane(box_only, p, n, 10) == box_only).all()
 
 
+def test_join_shadows_gives_the_floor_in_the_lights_shadow_the_floors_region():
+    """A box on a floor with two more colour regions on the floor: the box's shadow (the sky tints it) and a
+    patch of another albedo. With the traced light reaching most of the floor, the shadow's region joins the
+    floor; the patch, lit as often as the floor around it, and the box stay; a light that reaches under half of
+    the floor, or a largest region that is no plane, joins nothing."""
+    rng = np.random.default_rng(4)
+    p, n, is_box = _box_on_floor(rng)
+    floor = ~is_box
+    shadow = floor & (p[:, 0] > 0.1) & (p[:, 0] < 0.4) & (np.abs(p[:, 1]) < 0.1)
+    patch = floor & (p[:, 0] < -0.2) & (p[:, 1] > 0.2)
+    lit = ~shadow & ~(patch & (p[:, 0] < -0.45))   # the patch's edge in a shadow too: lit 9 in 10 like the floor
+    labels = np.select([is_box, shadow, patch], [1, 2, 3], 0)
+    out = alb.join_shadows(labels, lit, p, n)
+    assert (out[shadow] == 0).all() and (out[floor & ~shadow & ~patch] == 0).all()
+    assert len(np.unique(out[patch])) == 1 and out[patch][0] not in (0, out[is_box][0])
+    assert len(np.unique(out[is_box])) == 1 and out[is_box][0] != 0
+    assert (alb.join_shadows(labels, lit & (p[:, 0] > 0.05), p, n) == labels).all()
+    box_and_shadow = is_box | shadow   # the box is the largest region: no plane
+    kept = np.where(is_box, 0, 1)[box_and_shadow]
+    assert (alb.join_shadows(kept, lit[box_and_shadow], p[box_and_shadow], n[box_and_shadow]) == kept).all()
+
+
 def test_regions_recover_lighting_where_one_albedo_fails():
     rng = np.random.default_rng(1)
     rad, tr, nrm, vis, rho, light = scene(rng)

@@ -12,8 +12,9 @@ The fit alternates, at most cfg.iterations times and until F moves less than cfg
   2. albedos given F, in closed form per region and channel: rho = sum w I S / sum w S^2 (S = R.F),
      then the scale fix (albedo.reference_scale) moves the common factor into F; regions whose
      albedos the data cannot tell apart are merged. At the third alternation the regions are
-     found again on the albedo estimates I / S (shading divided out; albedo.py), and a region whose residual
-     says it mixes surfaces of different albedo is split by geometry (_split_mixed);
+     found again on the albedo estimates I / S (shading divided out; albedo.py), a region whose residual
+     says it mixes surfaces of different albedo is split by geometry (_split_mixed), and with a traced light
+     the floor's colour regions that lie in its shadow join the floor (albedo.join_shadows);
   3. robust weights from the luminance residuals e_i scaled by 1.4826 * MAD (cfg.loss: Huber or
      Tukey's biweight): specular highlights, unexplained shadows, colour-depth misalignment and stray
      normals stop pulling the estimate.
@@ -534,6 +535,20 @@ def _split_mixed(labels, A, I, F, w, points, normals, min_count: int) -> np.ndar
     return alb.split_by_geometry(labels, flagged, points, normals, min_count) if flagged else labels
 
 
+def _lit(columns: np.ndarray, terms: list[Term]) -> np.ndarray | None:
+    """Samples (N,) that the distant-light terms (a traced light) reach: a column over half the median of its
+    positive values (the penumbra's outer half counts as shadow); None without such a term."""
+    lit = None
+    for j, term in enumerate(terms):
+        if term.sh is None:
+            continue
+        col = columns[:, j]
+        pos = col[col > 0]
+        on = col > 0.5 * alb.median(pos) if pos.size else np.zeros(col.size, dtype=bool)
+        lit = on if lit is None else lit | on
+    return lit
+
+
 def solve(radiance, transfer, normals, visible, cfg: SolverConfig, prior=None, mask=None,
           points=None, reference=None, terms: list[Term] | None = None, start: Solution | None = None,
           current: int | None = None) -> Solution:
@@ -589,6 +604,7 @@ def solve(radiance, transfer, normals, visible, cfg: SolverConfig, prior=None, m
                 tsh[j] = np.asarray(term.sh, dtype=np.float64)[:k_fit]
         A = np.hstack([A, np.stack(cols, axis=1)])
     ub = np.array([t.upper if t.upper is not None else np.full(3, np.inf) for t in terms]) if terms else None
+    lit = _lit(A[:, A.shape[1] - p:], terms)
     pts = None if points is None else np.take(np.asarray(points, dtype=np.float64).reshape(-1, 3), idx, axis=0)
     min_count = max(int(cfg.min_region_fraction * n), 3)
     key = _setup_key(cfg, min_count)
@@ -634,6 +650,8 @@ def solve(radiance, transfer, normals, visible, cfg: SolverConfig, prior=None, m
                 if pts is not None and normals is not None:
                     labels = _split_mixed(labels, A, I, F, w0 * rw, pts, nrm, min_count)
                     labels = alb.split_off_plane(labels, pts, nrm, min_count)
+                    if lit is not None:
+                        labels = alb.join_shadows(labels, lit, pts, nrm)
                 m = int(labels.max()) + 1
                 w, regions = w0 * rw * (labels >= 0), _Regions.of(A, I, labels, m, w0)
                 Gm, hm, c0 = regions.grams(w)
