@@ -174,11 +174,10 @@ def test_a_stale_joint_fit_has_the_held_light_refined_in_that_frame():
     assert search.due() and search.frames == 7
 
 
-def test_a_shadow_with_a_region_of_its_own_on_the_floor_still_reveals_the_sun():
-    """A floor lit by a sky and a sun, with the shadow of a ball that the camera does not see: the sky-tinted
-    shadow gets an albedo region of its own, whose albedo would explain the shadow away; the search scores
-    every sample on the floor's plane with the floor's albedo and finds the sun. With the same samples placed
-    off any common plane (the albedos as the regions have them) it does not."""
+def _floor_with_a_ball_shadow():
+    """A 2 x 2 m floor (albedo 0.8) under a 3-band sky and the sun, with the shadow of a ball that the camera does
+    not see (on one plane only the shadow tells the sun's direction): points, normals, trace(idx, dirs), transfer,
+    radiance, the sun's transfer and the robust solve without the sun."""
     rng = np.random.default_rng(0)
     n = 2500
     points = np.column_stack([rng.uniform(-1, 1, (n, 2)), np.zeros(n)])
@@ -202,12 +201,41 @@ def test_a_shadow_with_a_region_of_its_own_on_the_floor_still_reveals_the_sun():
     radiance = 0.8 * (transfer @ sky.T + np.outer(t_sun, [3.0, 2.7, 2.25]))
     sol = solve(radiance, transfer, normals, vis.sum(axis=1) / (normals @ QUAD.T > 0).sum(axis=1),
                 SolverConfig(bands=5, **ROBUST), points=points)
-    shadowed = t_sun == 0
-    assert len(sol.albedo) == 2 and np.all(sol.labels[np.searchsorted(sol.samples, np.flatnonzero(shadowed))] == 1)
+    return points, normals, trace, transfer, radiance, t_sun, sol
+
+
+def _angle_to_sun(found) -> float:
+    return math.degrees(math.acos(min(1.0, found.direction @ SUN)))
+
+
+def test_a_shadow_with_a_region_of_its_own_on_the_floor_still_reveals_the_sun():
+    """The sky-tinted shadow gets an albedo region of its own, whose albedo would explain the shadow away; the
+    search scores every sample on the floor's plane with the floor's albedo and finds the sun. With the same
+    samples placed off any common plane (the albedos as the regions have them) it does not."""
+    points, normals, trace, transfer, radiance, t_sun, sol = _floor_with_a_ball_shadow()
+    assert len(sol.albedo) == 2 and np.all(sol.labels[np.searchsorted(sol.samples, np.flatnonzero(t_sun == 0))] == 1)
     found = SunSearch(SunConfig())(trace, sol, radiance, lambda idx: transfer[idx], normals, points)
-    assert found is not None and math.degrees(math.acos(min(1.0, found.direction @ SUN))) < 2.0
-    off = SunSearch(SunConfig())(trace, sol, radiance, lambda idx: transfer[idx], normals, scattered(n))
-    assert off is None or math.degrees(math.acos(min(1.0, off.direction @ SUN))) > 20.0   # measured: 116 degrees
+    assert found is not None and _angle_to_sun(found) < 2.0
+    off = SunSearch(SunConfig())(trace, sol, radiance, lambda idx: transfer[idx], normals, scattered(len(points)))
+    assert off is None or _angle_to_sun(off) > 20.0   # measured: 116 degrees
+
+
+def test_the_search_scores_without_the_robust_weights_that_discount_the_lights_shadows():
+    """The SH-only fit cannot hold a light's shadows, so its robust loss lowers their weight. The search scores the
+    samples with their normal weights alone: it finds the light where the fit's weights all but dropped the
+    shadow, and, given those weights as the normal ones, it does not."""
+    import dataclasses
+
+    points, normals, trace, transfer, radiance, t_sun, sol = _floor_with_a_ball_shadow()
+    dropped = dataclasses.replace(sol, weights=np.where(t_sun[sol.samples] == 0, 1e-6, 1.0) * sol.weights)
+
+    def search(s):
+        return SunSearch(SunConfig())(trace, s, radiance, lambda idx: transfer[idx], normals, points)
+
+    found = search(dropped)
+    assert found is not None and _angle_to_sun(found) < 2.0
+    lost = search(dataclasses.replace(dropped, setup=dataclasses.replace(sol.setup, w0=dropped.weights)))
+    assert lost is None or _angle_to_sun(lost) > 20.0
 
 
 def test_no_light_is_claimed_without_shadows():
