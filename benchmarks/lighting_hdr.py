@@ -28,10 +28,10 @@ import numpy as np  # noqa: E402
 
 from photoreg.bench import metrics  # noqa: E402
 from photoreg.bench.score import load_gt  # noqa: E402
+from photoreg.lighting.sh import LUMINANCE  # noqa: E402
 from photoreg.synth.environment import environment_sh, load_environment, node_directions  # noqa: E402
 
 ABLATIONS = ("no traced sun", "albedo single", "loss none", "bands 3")
-LUMINANCE = np.array([0.2126, 0.7152, 0.0722])
 
 
 def describe(recording: Path, gt: np.ndarray) -> dict:
