@@ -31,7 +31,7 @@ from photoreg.bench.score import load_gt  # noqa: E402
 from photoreg.lighting.sh import LUMINANCE  # noqa: E402
 from photoreg.synth.environment import environment_sh, load_environment, node_directions  # noqa: E402
 
-ABLATIONS = ("no traced sun", "albedo single", "loss none", "bands 3")
+ABLATIONS = ("no traced sun", "albedo single", "loss none", "bands 3", "no observed bounce")
 
 
 def describe(recording: Path, gt: np.ndarray) -> dict:

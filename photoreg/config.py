@@ -102,6 +102,8 @@ class LightingConfig:
     every: int = 1
     exposure: bool = True         # per-frame gain against the fused radiance (auto-exposure)
     bounce: bool = True           # one bounce in the model: directions blocked by real geometry see radiance e
+    # ... and those whose hit point the camera has seen, its fused luminance (photoreg.lighting.bounce)
+    bounce_observed: bool = True
     sun: bool = True              # trace the dominant light apart from the SH (photoreg.lighting.sun; fixed bands)
     sun_candidates: int = 256     # coarse directions searched over the sphere
     sun_samples: int = 1500       # samples traced per candidate direction

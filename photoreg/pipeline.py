@@ -19,6 +19,7 @@ from .device import init_warp, resolve_device
 from .kernels.raycast import raycast_surface
 from .kernels.transfer import make_direction_set, radiance_transfer, visibility
 from .lighting import sh
+from .lighting.bounce import bounce_columns, observed_bounce_terms
 from .lighting.exposure import ExposureTracker
 from .lighting.history import Samples, SampleHistory
 from .lighting.robust import Solution, Term, bounce_term, solve
@@ -53,7 +54,6 @@ class Pipeline:
         self.filter = (LightingFilter(self.solver_cfg.fit_bands,
                                       FilterConfig(lc.process_noise, lc.change_threshold, lc.new_view_share))
                        if lc.temporal else None)
-        self.exposure = ExposureTracker(cell=2 * rc.voxel_size) if lc.exposure else None
         self.history = (SampleHistory(lc.history, seed=self.solver_cfg.seed, view_deg=lc.history_view_deg)
                         if lc.history else None)  # earlier views
         self.tracker = None
@@ -68,6 +68,10 @@ class Pipeline:
         # Extra terms (the bounce, the dominant light) only with fixed bands: order selection compares SH models.
         fixed = self.solver_cfg.select == "fixed"
         self.bounce = lc.bounce and fixed
+        self.observed_bounce = self.bounce and lc.bounce_observed
+        # the fused surface luminance: the exposure gain's reference and what blocked rays see (observed bounce)
+        self.surface = (ExposureTracker(cell=2 * rc.voxel_size) if lc.exposure or self.observed_bounce
+                        else None)
         self.sun = (SunSearch(SunConfig(candidates=lc.sun_candidates, samples=lc.sun_samples,
                                          min_gain=lc.sun_min_gain, rays=lc.sun_rays,
                                          refine_every=lc.sun_refine_every))
@@ -137,8 +141,13 @@ class Pipeline:
         return self.sun is not None and self.sun.due()
 
     def _terms(self, data: Samples) -> list[Term]:
-        """The solve's extra terms other than the traced light: the bounce (lighting.bounce)."""
-        return [bounce_term(data.transfer, data.radiance)] if self.bounce else []
+        """The solve's extra terms other than the traced light: the bounce (lighting.bounce), split into observed
+        and fitted radiance with lighting.bounce_observed."""
+        if not self.bounce:
+            return []
+        if self.observed_bounce:
+            return observed_bounce_terms(data.bounce, data.transfer, data.radiance)
+        return [bounce_term(data.transfer, data.radiance)]
 
     def _solve(self, data: Samples, previous, terms: list[Term], grid=None, sun: Sun | None = None, start=None,
                current: int | None = None):
@@ -215,12 +224,15 @@ class Pipeline:
             radiance, points, normals = self._samples(prep, maps, pose)
         with self._timed(t, "transfer"):
             traced, kept = self._traced(len(points))
-            tr = radiance_transfer(grid, points[traced], normals[traced], self.dirs, self.Y,
-                                   offset=lc.ray_offset_voxels * rc.voxel_size, ray_length=lc.ray_length)
+            offset = lc.ray_offset_voxels * rc.voxel_size
+            tr = radiance_transfer(grid, points[traced], normals[traced], self.dirs, self.Y, offset=offset,
+                                   ray_length=lc.ray_length, hit_distances=self.observed_bounce)
         with self._timed(t, "solve"):
-            gain = self.exposure.gain(points, radiance)[0] if self.exposure is not None else 1.0
+            gain = self.surface.gain(points, radiance)[0] if lc.exposure else 1.0
+            bounce = (bounce_columns(tr, points[traced], normals[traced], self.dirs, offset, self.surface)
+                      if self.observed_bounce else np.zeros((len(traced), 2)))
             current = Samples(radiance[traced] / gain, tr.transfer, normals[traced], points[traced],
-                              tr.visible_fraction)
+                              tr.visible_fraction, bounce)
             data = self.history.with_current(current, kept) if self.history is not None else current
             previous = self.filter.prediction() if self.filter is not None else self.prev_F
         sun, sol, own = self._lighting(grid, current, data, previous, t)
@@ -232,6 +244,8 @@ class Pipeline:
                             "irradiance": np.round(sol.terms["sun"], 7).tolist(), "gain": round(sun.gain, 5)}
             if "bounce" in sol.terms:
                 diag.bounce_radiance = np.round(sol.terms["bounce"], 7).tolist()
+            if "bounce_observed" in sol.terms:
+                diag.bounce_observed = np.round(sol.terms["bounce_observed"], 5).tolist()
             diag.exposure_gain = gain
             new_view = False   # whether the history took this frame's samples as a new view
             if self.history is not None:  # keep the view's samples its own solve fitted, if enough
@@ -250,8 +264,8 @@ class Pipeline:
             if self.filter is not None:
                 filtered, diag.change_detected = self.filter.update(sol, new_view)
                 F = Lighting(filtered)
-            if self.exposure is not None:
-                self.exposure.update(points, radiance / gain)
+            if self.surface is not None:
+                self.surface.update(points, radiance / gain)
         return F, diag, gain
 
     def _hold(self, prep: Prepared, maps, pose: np.ndarray,
@@ -260,10 +274,10 @@ class Pipeline:
         estimate, with this frame's exposure gain (the composite is in this frame's exposure)."""
         index, F, held = self._held
         gain = 1.0
-        if self.exposure is not None:
+        if self.session.lighting.exposure:
             with self._timed(t, "sample"):
                 radiance, points, _ = self._samples(prep, maps, pose, GAIN_SAMPLES)
-                gain = self.exposure.gain(points, radiance)[0]
+                gain = self.surface.gain(points, radiance)[0]
         note = f"lighting of frame {index} held (lighting.every = {self.session.lighting.every})"
         diag = dataclasses.replace(held, notes=[note] + held.notes, exposure_gain=gain, change_detected=False)
         return Lighting(F.sh.copy()), diag, gain
@@ -297,7 +311,7 @@ class Pipeline:
         F, diag, composite = None, None, None
         if pose is not None:
             hold = self._held is not None and self._held_for + 1 < lc.every
-            if not hold or self.render is not None or self.exposure is not None:
+            if not hold or self.render is not None or lc.exposure:
                 with self._timed(t, "raycast"):
                     grid = self.volume.dense_grid()
                     maps = raycast_surface(grid, self.intrinsics, pose, rc.depth_min, rc.depth_max, stride=lc.stride,

@@ -95,6 +95,7 @@ class SolveDiagnostics:
     # radians), irradiance (its e per channel, F's units) and gain (share of the SH-only residual it explains).
     sun: dict | None = None
     bounce_radiance: list | None = None      # (3,) radiance the blocked directions see (the one-bounce term)
+    bounce_observed: list | None = None      # (3,) colour gain on the observed radiance they see (bounce_observed)
 
     def to_json(self) -> dict:
         cond = self.condition_number
@@ -109,7 +110,8 @@ class SolveDiagnostics:
                         "inlier_fraction": self.inlier_fraction, "unobserved": list(self.unobserved),
                         "observed_fraction": self.observed_fraction, "heldout_residual": self.heldout_residual,
                         "exposure_gain": float(self.exposure_gain), "change_detected": bool(self.change_detected),
-                        "sun": self.sun, "bounce_radiance": self.bounce_radiance})
+                        "sun": self.sun, "bounce_radiance": self.bounce_radiance,
+                        "bounce_observed": self.bounce_observed})
         return out
 
 

@@ -148,14 +148,15 @@ def test_split_launches_equal_the_single_launch(room_grid, threads):
     def run(n):
         maps = raycast_surface(grid, intr, poses[0], 0.1, 4.0, threads=n)
         tr = radiance_transfer(grid, maps.vertex_wp, maps.normal_wp, dirs, Y, offset=0.02, ray_length=0.5,
-                               virtual=grid, threads=n)  # the grid as its own 'virtual' layer: both passes run
+                               virtual=grid, threads=n, hit_distances=True)  # the grid as its own 'virtual' layer
         return maps, tr
 
     (m1, t1), (mn, tn) = run(1), run(threads)
     assert m1.valid.mean() > 0.5 and 0.2 < t1.visible_fraction[m1.valid.ravel()].mean() < 1.0
     for a, b in [(m1.depth, mn.depth), (m1.vertex, mn.vertex), (m1.normal, mn.normal), (t1.transfer, tn.transfer),
                  (t1.visible_fraction, tn.visible_fraction), (t1.occlusion_wp.numpy(), tn.occlusion_wp.numpy()),
-                 (t1.transfer_rv, tn.transfer_rv), (t1.visible_fraction_rv, tn.visible_fraction_rv)]:
+                 (t1.transfer_rv, tn.transfer_rv), (t1.visible_fraction_rv, tn.visible_fraction_rv),
+                 (t1.hit_distance_wp.numpy(), tn.hit_distance_wp.numpy())]:
         np.testing.assert_array_equal(a, b)
 
 

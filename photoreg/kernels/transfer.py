@@ -6,9 +6,13 @@ of D equal-area directions covering the whole sphere: R_i = (1/pi) (4 pi / D) su
 Two passes, so that visibility against several grids shares one projection:
 1. occlusion: one thread per (point, direction) marches the ray from x + n * offset and writes bit
    flags per direction: REAL when the real-geometry grid blocks it, VIRTUAL when the optional second
-   grid (the voxelised virtual objects, photoreg.render.scene) blocks it, so one pass serves both;
+   grid (the voxelised virtual objects, photoreg.render.scene) blocks it, so one pass serves both; on
+   request also the distance at which real geometry blocks it (where the bounce light comes from:
+   photoreg.lighting.bounce);
 2. projection: one thread per (point, coefficient) sums the hemisphere directions whose flags under
-   `mask` are clear (mask REAL -> R_TR; REAL | VIRTUAL -> R_TRV), plus the visible fraction.
+   `mask` are clear (mask REAL -> R_TR; REAL | VIRTUAL -> R_TRV), plus the visible fraction;
+3. observed bounce (observed_bounce, after a pass with hit distances): one thread per point sums its blocked
+   rays' weights, times the fused luminance of the map cell each ray hits where the map holds it.
 """
 from __future__ import annotations
 
@@ -38,6 +42,8 @@ class TransferResult:
     occlusion_wp: wp.array2d       # (N, D) uint8 bit flags per direction (REAL, VIRTUAL)
     transfer_rv: np.ndarray | None = None          # (N, B*B) R_TRV (real + virtual occluding), with a virtual grid
     visible_fraction_rv: np.ndarray | None = None  # (N,) visible fraction under real + virtual geometry
+    # (N, D) float32 distance at which real geometry blocks each ray (-1: it does not), with hit_distances
+    hit_distance_wp: wp.array2d | None = None
 
 
 def make_direction_set(rays: int, bands: int, seed: int | None = None) -> tuple[np.ndarray, np.ndarray]:
@@ -50,9 +56,10 @@ def make_direction_set(rays: int, bands: int, seed: int | None = None) -> tuple[
 
 
 @wp.func
-def ray_blocked(sdf: wp.array3d(dtype=SDF_DTYPE), empty: wp.array3d(dtype=wp.uint8), cell: int, origin: wp.vec3,
-                voxel: float, trunc: float, o: wp.vec3, w: wp.vec3, length: float, min_step: float) -> bool:
-    """True when the SDF turns negative on o + t w, 0 <= t <= length (SDF-sized steps, >= min_step,
+def ray_hit(sdf: wp.array3d(dtype=SDF_DTYPE), empty: wp.array3d(dtype=wp.uint8), cell: int, origin: wp.vec3,
+            voxel: float, trunc: float, o: wp.vec3, w: wp.vec3, length: float, min_step: float) -> float:
+    """The first t in [0, length] at which the SDF on o + t w turns negative, interpolated linearly between the
+    last two samples (the surface, to a fraction of a step); -1 when it never does (SDF-sized steps, >= min_step,
     jumping across empty cells)."""
     inv_voxel = 1.0 / voxel
     hi = origin + wp.vec3(float(sdf.shape[0] - 1), float(sdf.shape[1] - 1), float(sdf.shape[2] - 1)) * voxel
@@ -60,16 +67,29 @@ def ray_blocked(sdf: wp.array3d(dtype=SDF_DTYPE), empty: wp.array3d(dtype=wp.uin
     t = wp.max(span[0], 0.0)
     t_end = wp.min(span[1], length)
     band = 0.999 * trunc
+    t_prev = float(-1.0)
+    s_prev = float(0.0)
     while t <= t_end:
         p = o + w * t
         s = sample_sdf(sdf, origin, inv_voxel, trunc, p)
         if s < 0.0:
-            return True
+            if t_prev >= 0.0:
+                return t_prev + (t - t_prev) * s_prev / (s_prev - s)
+            return t
         step = wp.max(s, min_step)
         if s >= band:
             step = wp.max(step, free_run(empty, origin, inv_voxel, voxel, cell, p))
+        t_prev = t
+        s_prev = s
         t = t + step
-    return False
+    return -1.0
+
+
+@wp.func
+def ray_blocked(sdf: wp.array3d(dtype=SDF_DTYPE), empty: wp.array3d(dtype=wp.uint8), cell: int, origin: wp.vec3,
+                voxel: float, trunc: float, o: wp.vec3, w: wp.vec3, length: float, min_step: float) -> bool:
+    """True when the SDF turns negative on o + t w, 0 <= t <= length (ray_hit's march)."""
+    return ray_hit(sdf, empty, cell, origin, voxel, trunc, o, w, length, min_step) >= 0.0
 
 
 @wp.kernel
@@ -77,21 +97,25 @@ def _occlusion(sdf: wp.array3d(dtype=SDF_DTYPE), empty: wp.array3d(dtype=wp.uint
                voxel: float, trunc: float, points: wp.array(dtype=wp.vec3), normals: wp.array(dtype=wp.vec3),
                dirs: wp.array(dtype=wp.vec3), offset: float, ray_length: float, min_step: float,
                has_virtual: int, vsdf: wp.array3d(dtype=SDF_DTYPE), vempty: wp.array3d(dtype=wp.uint8), vcell: int,
-               vorigin: wp.vec3, vvoxel: float, vtrunc: float, vmin_step: float, row0: int,
-               occ: wp.array2d(dtype=wp.uint8)):
+               vorigin: wp.vec3, vvoxel: float, vtrunc: float, vmin_step: float, want_hits: int, row0: int,
+               occ: wp.array2d(dtype=wp.uint8), hits: wp.array2d(dtype=wp.float32)):
     t, k = wp.tid()
     i = row0 + t
     n = normals[i]
     w = dirs[k]
     bits = int(0)
+    t_hit = float(-1.0)
     if wp.dot(n, w) > 0.0:
         o = points[i] + n * offset
-        if ray_blocked(sdf, empty, cell, origin, voxel, trunc, o, w, ray_length, min_step):
+        t_hit = ray_hit(sdf, empty, cell, origin, voxel, trunc, o, w, ray_length, min_step)
+        if t_hit >= 0.0:
             bits = REAL
         if has_virtual != 0:
             if ray_blocked(vsdf, vempty, vcell, vorigin, vvoxel, vtrunc, o, w, ray_length, vmin_step):
                 bits = bits | VIRTUAL
     occ[i, k] = wp.uint8(bits)
+    if want_hits != 0:
+        hits[i, k] = t_hit
 
 
 @wp.kernel
@@ -133,6 +157,61 @@ def _any_blocked(sdf: wp.array3d(dtype=SDF_DTYPE), empty: wp.array3d(dtype=wp.ui
             if ray_blocked(sdf, empty, cell, origin, voxel, trunc, o, w, ray_length, min_step):
                 hit[i] = wp.uint8(1)
                 break
+
+
+KEY_OFFSET = wp.constant(1 << 20)  # cell coordinates are offset by this and clamped to 21 bits (cell_key)
+
+
+@wp.func
+def cell_key(p: wp.vec3, cell: float) -> wp.int64:
+    """The key of the world cell of `cell` metres holding p: per axis floor(p / cell) + KEY_OFFSET, clamped to
+    [0, 2^21), packed x, y, z into 63 bits (photoreg.lighting.exposure's map keys)."""
+    key = wp.int64(0)
+    for a in range(3):
+        c = wp.int64(wp.floor(p[a] / cell)) + wp.int64(KEY_OFFSET)
+        key = key * wp.int64(2097152) + wp.clamp(c, wp.int64(0), wp.int64(2097151))
+    return key
+
+
+@wp.func
+def find_key(keys: wp.array(dtype=wp.int64), key: wp.int64) -> int:
+    """Index of `key` in the sorted `keys` (binary search), -1 when absent."""
+    lo = int(0)
+    hi = keys.shape[0]
+    while lo < hi:
+        mid = (lo + hi) // 2
+        if keys[mid] < key:
+            lo = mid + 1
+        else:
+            hi = mid
+    if lo < keys.shape[0]:
+        if keys[lo] == key:
+            return lo
+    return -1
+
+
+@wp.kernel
+def _observed_bounce(hits: wp.array2d(dtype=wp.float32), points: wp.array(dtype=wp.vec3),
+                     normals: wp.array(dtype=wp.vec3), dirs: wp.array(dtype=wp.vec3), offset: float, scale: float,
+                     cell: float, keys: wp.array(dtype=wp.int64), lum: wp.array(dtype=wp.float32), row0: int,
+                     out: wp.array2d(dtype=wp.float32)):
+    i = row0 + wp.tid()
+    n = normals[i]
+    o = points[i] + n * offset
+    seen = float(0.0)
+    unseen = float(0.0)
+    for d in range(dirs.shape[0]):
+        h = hits[i, d]
+        if h >= 0.0:
+            w = dirs[d]
+            c = wp.max(wp.dot(n, w), 0.0) * scale
+            j = find_key(keys, cell_key(o + w * h, cell))
+            if j >= 0:
+                seen += c * lum[j]
+            else:
+                unseen += c
+    out[i, 0] = seen
+    out[i, 1] = unseen
 
 
 def _as_warp(a, dtype, device: str, what: str, inner: int | None):
@@ -177,17 +256,19 @@ def _checked_rays(grid: DenseGrid, points, normals, dirs, offset: float, ray_len
 
 
 def _occlusion_pass(grid: DenseGrid, p, n, w, offset: float, ray_length: float, device: str, min_step_voxels: float,
-                    virtual: DenseGrid | None, threads: int | None) -> wp.array2d:
-    """(N, D) uint8 REAL / VIRTUAL flags of the checked rays (pass 1 of the module docstring)."""
+                    virtual: DenseGrid | None, threads: int | None, hits: wp.array2d | None = None) -> wp.array2d:
+    """(N, D) uint8 REAL / VIRTUAL flags of the checked rays (pass 1 of the module docstring); with `hits` (N, D)
+    float32 also the distance at which real geometry blocks each ray (-1: not blocked or outside the hemisphere)."""
     occ = wp.zeros((p.shape[0], w.shape[0]), dtype=wp.uint8, device=device)
     v = grid if virtual is None else virtual  # a stand-in when there is no virtual grid (never marched)
+    out = hits if hits is not None else wp.zeros((1, 1), dtype=wp.float32, device=device)  # never written
     launch_rows(_occlusion, occ.shape, device=device, threads=threads,
                 inputs=[grid.sdf, grid.empty, int(grid.cell), wp.vec3(*grid.origin), float(grid.voxel_size),
                         float(grid.trunc), p, n, w, float(offset), float(ray_length),
                         float(min_step_voxels * grid.voxel_size), int(virtual is not None), v.sdf, v.empty,
                         int(v.cell), wp.vec3(*v.origin), float(v.voxel_size), float(v.trunc),
-                        float(min_step_voxels * v.voxel_size)],
-                outputs=[occ])
+                        float(min_step_voxels * v.voxel_size), int(hits is not None)],
+                outputs=[occ, out])
     return occ
 
 
@@ -217,18 +298,21 @@ def any_blocked(grid: DenseGrid, points, normals, dirs, offset: float, ray_lengt
 
 def radiance_transfer(grid: DenseGrid, points, normals, dirs, ytable, offset: float, ray_length: float,
                       device: str | None = None, min_step_voxels: float = 0.5,
-                      virtual: DenseGrid | None = None, threads: int | None = None) -> TransferResult:
+                      virtual: DenseGrid | None = None, threads: int | None = None,
+                      hit_distances: bool = False) -> TransferResult:
     """R_TR and visible fraction at world points (N, 3) with unit world normals (N, 3; zero = skip),
     numpy or Warp (vec3, any shape: flattened), over the direction set from make_direction_set.
-    With `virtual` (the virtual objects' SDF grid) the same ray pass also gives R_TRV (transfer_rv).
-    On the CPU the launches are split over `threads` threads (photoreg.kernels.launch)."""
+    With `virtual` (the virtual objects' SDF grid) the same ray pass also gives R_TRV (transfer_rv); with
+    `hit_distances` the distance along each ray from points + normals * offset to the real surface that
+    blocks it (hit_distance_wp; observed_bounce reads it). On the CPU the launches are split over `threads` threads (photoreg.kernels.launch)."""
     device, p, n, w = _checked_rays(grid, points, normals, dirs, offset, ray_length, device, min_step_voxels, virtual)
     y = _as_warp(ytable, wp.float32, device, "ytable", None)
     if y.shape[0] != w.shape[0]:
         raise ValueError(f"ytable has {y.shape[0]} rows for {w.shape[0]} directions")
     bands_of(y.shape[1])
     N, D, K = p.shape[0], w.shape[0], y.shape[1]
-    occ = _occlusion_pass(grid, p, n, w, offset, ray_length, device, min_step_voxels, virtual, threads)
+    hits = wp.zeros((N, D), dtype=wp.float32, device=device) if hit_distances else None
+    occ = _occlusion_pass(grid, p, n, w, offset, ray_length, device, min_step_voxels, virtual, threads, hits)
     transfer = wp.zeros((N, K), dtype=wp.float32, device=device)
     visible = wp.zeros(N, dtype=wp.float32, device=device)
     transfer_rv = visible_rv = None
@@ -242,4 +326,28 @@ def radiance_transfer(grid: DenseGrid, points, normals, dirs, ytable, offset: fl
         transfer_rv, visible_rv = trv.numpy(), vrv.numpy()
     return TransferResult(transfer=transfer.numpy(), visible_fraction=visible.numpy(), transfer_wp=transfer,
                           visible_fraction_wp=visible, occlusion_wp=occ, transfer_rv=transfer_rv,
-                          visible_fraction_rv=visible_rv)
+                          visible_fraction_rv=visible_rv, hit_distance_wp=hits)
+
+
+def observed_bounce(tr: TransferResult, points, normals, dirs, offset: float, cell: float, keys: np.ndarray,
+                    luminance: np.ndarray, threads: int | None = None) -> np.ndarray:
+    """(N, 2) per point of a radiance_transfer(..., hit_distances=True) pass over `dirs` from points + normals *
+    offset: the sum over its rays that real geometry blocks of (1/pi) max(n.w, 0) dw (dw = 4 pi / D) times the
+    luminance of the cell the ray hits, where the sorted cell keys `keys` (cell_key's, cells of `cell` metres)
+    hold it with `luminance`; and the same sum of weights alone over the other blocked rays."""
+    if tr.hit_distance_wp is None:
+        raise ValueError("observed_bounce needs the hit distances of the transfer pass (hit_distances=True)")
+    hits = tr.hit_distance_wp
+    device = str(hits.device)
+    p = _as_warp(points, wp.vec3, device, "points", 3)
+    n = _as_warp(normals, wp.vec3, device, "normals", 3)
+    w = _as_warp(dirs, wp.vec3, device, "dirs", 3)
+    if p.shape[0] != hits.shape[0] or n.shape[0] != hits.shape[0] or w.shape[0] != hits.shape[1]:
+        raise ValueError(f"observed_bounce: {p.shape[0]} points, {n.shape[0]} normals and {w.shape[0]} directions "
+                         f"for hit distances of shape {hits.shape}")
+    k = wp.array(np.ascontiguousarray(keys, dtype=np.int64), dtype=wp.int64, device=device)
+    lum = wp.array(np.ascontiguousarray(luminance, dtype=np.float32), dtype=wp.float32, device=device)
+    out = wp.zeros((hits.shape[0], 2), dtype=wp.float32, device=device)
+    launch_rows(_observed_bounce, (hits.shape[0],), device=device, threads=threads,
+                inputs=[hits, p, n, w, float(offset), 4.0 / hits.shape[1], float(cell), k, lum], outputs=[out])
+    return out.numpy().astype(np.float64)

@@ -6,7 +6,8 @@ holds the running mean luminance of the gain-corrected samples in world cells of
 (a hashed sparse grid, independent of the TSDF). A frame's gain is exp(median(log I - log map)) over
 the cells it shares with the map (median: robust to highlights, new shadows and misregistration);
 its radiance is divided by the gain before the solve, so the lighting stays on the first frame's
-exposure scale instead of jumping with the camera's. Cells forget after `memory` frames (running
+exposure scale instead of jumping with the camera's. The same map tells what a ray that real geometry
+blocks sees (photoreg.lighting.bounce: its sorted keys and luminance go to kernels.transfer.observed_bounce). Cells forget after `memory` frames (running
 mean with capped count), so after a real lighting change the map follows. Without enough overlap the
 last gain is kept.
 """
@@ -31,23 +32,31 @@ class ExposureTracker:
         self.count = np.zeros(0)
         self.last_gain = 1.0
 
+    def _keys(self, points: np.ndarray) -> np.ndarray:
+        """Cell key of each (finite) world point (M, 3); kernels.transfer.cell_key packs the same on the device."""
+        c = np.clip(np.floor(points / self.cell).astype(np.int64) + (1 << 20), 0, (1 << 21) - 1)
+        return (c[:, 0] << 42) | (c[:, 1] << 21) | c[:, 2]
+
     def _cells(self, points: np.ndarray, radiance: np.ndarray):
         """Unique cell keys of the usable samples and their mean luminance."""
         p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
         lum = np.asarray(radiance, dtype=np.float64).reshape(-1, 3) @ sh.LUMINANCE
         ok = np.isfinite(p).all(axis=1) & np.isfinite(lum) & (lum > DARK)
-        c = np.floor(p[ok] / self.cell).astype(np.int64) + (1 << 20)
-        c = np.clip(c, 0, (1 << 21) - 1)
-        keys = (c[:, 0] << 42) | (c[:, 1] << 21) | c[:, 2]
-        uniq, inv = np.unique(keys, return_inverse=True)
+        uniq, inv = np.unique(self._keys(p[ok]), return_inverse=True)
         return uniq, np.bincount(inv, weights=lum[ok]) / np.bincount(inv)
+
+    def _find(self, keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(position in the map, whether the map holds it) of each cell key."""
+        if len(self.keys) == 0:
+            return np.zeros(len(keys), dtype=np.int64), np.zeros(len(keys), dtype=bool)
+        pos = np.minimum(np.searchsorted(self.keys, keys), len(self.keys) - 1)
+        return pos, self.keys[pos] == keys
 
     def gain(self, points: np.ndarray, radiance: np.ndarray) -> tuple[float, int]:
         """(gain of this frame relative to the map, number of cells compared); the last gain when
         fewer than min_matches cells overlap (1 for the first frame)."""
         keys, lum = self._cells(points, radiance)
-        pos = np.clip(np.searchsorted(self.keys, keys), 0, max(len(self.keys) - 1, 0))
-        hit = (pos < len(self.keys)) & (self.keys[pos] == keys) if len(self.keys) else np.zeros(len(keys), bool)
+        pos, hit = self._find(keys)
         n = int(hit.sum())
         if n >= self.min_matches:
             g = float(np.exp(np.median(np.log(lum[hit]) - np.log(self.lum[pos[hit]]))))

@@ -12,7 +12,7 @@ same on the generated recordings, but a lighting change the filter's test misses
 rest of the recording; here it fades within a few frames). Emptying it when the temporal filter detects a
 lighting change was tried and dropped: that test also fires on static scenes now and then (generated tabletop,
 frame 9), and a switch was followed as well without it (tests/test_history.py). Radiance is stored divided
-by its frame's exposure gain; transfer is the R_TR computed in its frame.
+by its frame's exposure gain; transfer is the R_TR computed in its frame, and the bounce columns those of its frame.
 
 The history counts views, not frames: a frame whose camera is within `view_deg` of the newest view's (optical
 axes, and the angle its displacement subtends at the samples' median distance) takes that view's place among
@@ -40,6 +40,7 @@ class Samples:
     normals: np.ndarray    # (N, 3) world
     points: np.ndarray     # (N, 3) world, metres
     visible: np.ndarray    # (N,) unoccluded share of the hemisphere
+    bounce: np.ndarray     # (N, 2) bounce columns at the sample's own frame (photoreg.lighting.bounce; else zeros)
 
     def __len__(self) -> int:
         return self.radiance.shape[0]

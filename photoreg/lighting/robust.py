@@ -32,7 +32,9 @@ I_i = rho * (R_i . F + sum_j e_j t_ij); the SH part keeps the Tikhonov term. Two
     true lighting and albedos) is taken for sunlight or distant light from the horizon. It is local, so it
     adds no SH. One e for every blocked direction, at most the median radiance of the frame's samples
     (what the surfaces around show; unbounded it took 0.9 on the generated corner, whose median is 0.6,
-    and cost accuracy there: si-RMSE 0.26 against 0.20 bounded).
+    and cost accuracy there: si-RMSE 0.26 against 0.20 bounded). With lighting.bounce_observed the directions
+    whose hit point the camera has seen get the observed radiance instead (photoreg.lighting.bounce: a third
+    term), and this one keeps the rest.
 
 Order selection (cfg.select): the band count B in 1..cfg.max_bands and the regularisation in
 cfg.lambdas are chosen per frame on the converged weights and albedos by GCV, K-fold held-out
@@ -174,13 +176,16 @@ class Term:
     upper: np.ndarray | None = None   # (3,) largest e per channel (None: unbounded)
 
 
-def bounce_term(transfer: np.ndarray, radiance: np.ndarray) -> Term:
-    """The one-bounce term from the transfer's band 0 (sh.blocked_share), its radiance bounded by the median
-    of the observed sample radiance (N, 3) (module docstring)."""
+def bounce_term(transfer: np.ndarray, radiance: np.ndarray, blocked: np.ndarray | None = None) -> Term:
+    """The one-bounce term, its column the share of the hemisphere that real geometry blocks (from the
+    transfer's band 0, sh.blocked_share; or `blocked` (N,) where given: photoreg.lighting.bounce's directions
+    whose hit no sample has seen), its radiance bounded by the median of the observed sample radiance (N, 3)
+    (module docstring)."""
     rad = np.asarray(radiance, dtype=np.float64).reshape(-1, 3)
     ok = np.isfinite(rad).all(axis=1)
     upper = np.array([alb.median(c) for c in rad[ok].T]) if ok.any() else np.zeros(3)
-    return Term("bounce", sh.blocked_share(transfer)[:, 0], upper=upper)
+    column = sh.blocked_share(transfer)[:, 0] if blocked is None else np.asarray(blocked, dtype=np.float64)
+    return Term("bounce", column, upper=upper)
 
 
 def _factor(G: np.ndarray, lam_rel: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
