@@ -3,7 +3,7 @@
 R(x)_i = (1/pi) * integral V(x, w) max(n.w, 0) Y_i(w) dw (DESIGN.md), by quadrature over a fixed set
 of D equal-area directions covering the whole sphere: R_i = (1/pi) (4 pi / D) sum_{n.w_d > 0} V_d (n.w_d) Y_i(w_d).
 
-Two passes, so that visibility against several grids shares one projection:
+Two passes, so that visibility against several grids shares one projection, and a third on request:
 1. occlusion: one thread per (point, direction) marches the ray from x + n * offset and writes bit
    flags per direction: REAL when the real-geometry grid blocks it, VIRTUAL when the optional second
    grid (the voxelised virtual objects, photoreg.render.scene) blocks it, so one pass serves both; on
@@ -304,7 +304,8 @@ def radiance_transfer(grid: DenseGrid, points, normals, dirs, ytable, offset: fl
     numpy or Warp (vec3, any shape: flattened), over the direction set from make_direction_set.
     With `virtual` (the virtual objects' SDF grid) the same ray pass also gives R_TRV (transfer_rv); with
     `hit_distances` the distance along each ray from points + normals * offset to the real surface that
-    blocks it (hit_distance_wp; observed_bounce reads it). On the CPU the launches are split over `threads` threads (photoreg.kernels.launch)."""
+    blocks it (hit_distance_wp; observed_bounce reads it). On the CPU the launches are split over `threads`
+    threads (photoreg.kernels.launch)."""
     device, p, n, w = _checked_rays(grid, points, normals, dirs, offset, ray_length, device, min_step_voxels, virtual)
     y = _as_warp(ytable, wp.float32, device, "ytable", None)
     if y.shape[0] != w.shape[0]:

@@ -6,10 +6,10 @@ holds the running mean luminance of the gain-corrected samples in world cells of
 (a hashed sparse grid, independent of the TSDF). A frame's gain is exp(median(log I - log map)) over
 the cells it shares with the map (median: robust to highlights, new shadows and misregistration);
 its radiance is divided by the gain before the solve, so the lighting stays on the first frame's
-exposure scale instead of jumping with the camera's. The same map tells what a ray that real geometry
-blocks sees (photoreg.lighting.bounce: its sorted keys and luminance go to kernels.transfer.observed_bounce). Cells forget after `memory` frames (running
+exposure scale instead of jumping with the camera's. Cells forget after `memory` frames (running
 mean with capped count), so after a real lighting change the map follows. Without enough overlap the
-last gain is kept.
+last gain is kept. The same map tells what a ray that real geometry blocks sees (photoreg.lighting.bounce:
+its sorted keys and luminance go to kernels.transfer.observed_bounce).
 """
 from __future__ import annotations
 
