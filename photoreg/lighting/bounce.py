@@ -22,10 +22,11 @@ from ..kernels.transfer import TransferResult, observed_bounce
 from .exposure import ExposureTracker
 from .robust import Term, bounce_term
 
-# Largest e_obs per channel: the observed luminance is the incident radiance, only its colour is free. Tried
-# on the generated tabletop / corner / 640x480 tabletop: 1.0 gave si-RMSE 0.086 / 0.209 / 0.081, 1.2 0.084 /
-# 0.227 / 0.077, 1.5 0.086 / 0.246 / 0.076, unbounded 0.096 / 0.247 (the corner, whose walls beyond the rays
-# read as sky, takes more than the observed light: capped at 1 it loses least).
+# Largest e_obs per channel: the observed luminance is the incident radiance, only its colour is free. Tried with
+# a first version (every solve's samples traced again through the current volume and map) on the generated
+# tabletop / corner / 640x480 tabletop: 1.0 gave si-RMSE 0.086 / 0.209 / 0.081, 1.2 0.084 / 0.227 / 0.077, 1.5
+# 0.086 / 0.246 / 0.076, unbounded 0.096 / 0.247 (the corner, whose walls beyond the rays read as sky, takes more
+# than the observed light: capped at 1 it loses least).
 OBSERVED_GAIN_MAX = 1.0
 
 
