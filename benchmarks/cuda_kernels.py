@@ -11,6 +11,7 @@ pipeline (it needs Open3D's CUDA build).
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import sys
 import time
@@ -57,8 +58,7 @@ def samples(n: int, seed: int = 0):
 def on(grid, device: str):
     """The grid's arrays copied to `device` (a DenseGrid is device-bound)."""
     wp = init_warp()
-    return type(grid)(**{**grid.__dict__, "sdf": wp.clone(grid.sdf, device=device),
-                         "empty": wp.clone(grid.empty, device=device)})
+    return dataclasses.replace(grid, sdf=wp.clone(grid.sdf, device=device), empty=wp.clone(grid.empty, device=device))
 
 
 def main() -> int:

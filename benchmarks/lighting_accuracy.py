@@ -136,6 +136,16 @@ def ensure_synth(folder: Path, kind: str, frames: int, size: str, spp: int, extr
     return out, shlex.join(cmd)
 
 
+def variant_recordings(folder: Path, frames: int, size: str, spp: int) -> list[tuple[str, Path, int, str]]:
+    """(label, folder, frames, `command`) of each of VARIANTS, generated into `folder` when missing."""
+    out = []
+    for label, kind, extra, vsize, vframes in VARIANTS:
+        slug = label.replace(", ", "_").replace(" ", "_")
+        path, cmd = ensure_synth(folder, kind, vframes or frames, vsize or size, spp, extra, slug)
+        out.append((label, path, vframes or frames, f"`{cmd}`"))
+    return out
+
+
 def fmt(v, spec: str) -> str:
     return "-" if v is None else format(v, spec)
 
@@ -179,12 +189,7 @@ def main() -> int:
     for name in sorted(p.name for p in real.iterdir()) if real.is_dir() else []:
         cases.append((f"{name} (real)", real / name, args.real_frames, "shared data"))
 
-    variants = []
-    for label, kind, extra, size, frames in VARIANTS:
-        slug = label.replace(", ", "_").replace(" ", "_")
-        frames = frames or args.frames
-        path, cmd = ensure_synth(Path(args.synth_dir), kind, frames, size or args.size, args.spp, extra, slug)
-        variants.append((label, path, frames, f"`{cmd}`"))
+    variants = variant_recordings(Path(args.synth_dir), args.frames, args.size, args.spp)
 
     rows = []
     t0 = time.perf_counter()

@@ -51,6 +51,11 @@ def describe(recording: Path, gt: np.ndarray) -> dict:
             "below": metrics.irradiance_si_rmse(above, gt, metrics.UPPER_NORMALS)}
 
 
+def hdr_recording(folder: Path, hdr: Path, frames: int, size: str, spp: int) -> tuple[Path, str]:
+    """The generated tabletop lit by the map `hdr` in `folder` (made when missing) and its command."""
+    return la.ensure_synth(folder, "tabletop", frames, size, spp, ("--env", str(hdr)), f"tabletop_hdr_{hdr.stem}")
+
+
 def cell(r: dict) -> str:
     return (f"{r['direction_deg']:.1f} / {r['irradiance_si_rmse_upper']:.3f} / {r['colour_deg']:.1f} / "
             f"{r['flicker']:.3f}")
@@ -68,8 +73,7 @@ def main() -> int:
     rows, commands = [], []
     t0 = time.perf_counter()
     for hdr in maps:
-        path, cmd = la.ensure_synth(Path(args.synth_dir), "tabletop", args.frames, args.size, args.spp,
-                                    ("--env", str(hdr)), f"tabletop_hdr_{hdr.stem}")
+        path, cmd = hdr_recording(Path(args.synth_dir), hdr, args.frames, args.size, args.spp)
         commands.append(cmd.replace(str(Path(args.data)), "$PHOTOREG_DATA"))
         gt = load_gt(path)
         row = {"map": hdr.stem, **describe(path, gt)}

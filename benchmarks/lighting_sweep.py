@@ -26,6 +26,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import lighting_accuracy as la  # noqa: E402  (sets up photoreg before numpy)
 import numpy as np  # noqa: E402
+from lighting_hdr import hdr_recording  # noqa: E402
 
 from photoreg.bench.score import load_gt  # noqa: E402
 from photoreg.synth.scenes import SCENE_KINDS  # noqa: E402
@@ -40,16 +41,11 @@ def recordings(args) -> list[tuple[str, str, Path, int]]:
            ("generated", "demo (40 frames)", la.REPO / "data" / "demo", 40)]
     out += [("generated", kind, la.ensure_synth(synth, kind, args.frames, size, args.spp)[0], args.frames)
             for kind in SCENE_KINDS]
-    for label, kind, extra, vsize, vframes in la.VARIANTS:
-        slug = label.replace(", ", "_").replace(" ", "_")
-        frames = vframes or args.frames
-        out.append(("variants", label, la.ensure_synth(synth, kind, frames, vsize or size, args.spp, extra, slug)[0],
-                    frames))
+    out += [("variants", label, path, frames)
+            for label, path, frames, _ in la.variant_recordings(synth, args.frames, size, args.spp)]
     data = Path(args.data)
-    for hdr in sorted((data / "hdr").glob("*.hdr")):
-        path, _ = la.ensure_synth(Path(args.hdr_dir), "tabletop", args.frames, size, args.spp, ("--env", str(hdr)),
-                                  f"tabletop_hdr_{hdr.stem}")
-        out.append(("hdr", hdr.stem, path, args.frames))
+    out += [("hdr", hdr.stem, hdr_recording(Path(args.hdr_dir), hdr, args.frames, size, args.spp)[0], args.frames)
+            for hdr in sorted((data / "hdr").glob("*.hdr"))]
     real = data / "recordings"
     out += [("real", name, real / name, args.real_frames) for name in sorted(p.name for p in real.iterdir())]
     return out

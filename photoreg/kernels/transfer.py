@@ -23,6 +23,7 @@ import numpy as np
 from photoreg.device import init_warp
 from photoreg.kernels.grid import SDF_DTYPE, DenseGrid, free_run, ray_box, sample_sdf
 from photoreg.kernels.launch import launch_rows
+from photoreg.lighting.exposure import CELL_BITS, CELL_OFFSET
 from photoreg.lighting.sh import bands_of, fibonacci_sphere, sh_basis
 
 wp = init_warp()
@@ -159,17 +160,18 @@ def _any_blocked(sdf: wp.array3d(dtype=SDF_DTYPE), empty: wp.array3d(dtype=wp.ui
                 break
 
 
-KEY_OFFSET = wp.constant(1 << 20)  # cell coordinates are offset by this and clamped to 21 bits (cell_key)
+KEY_OFFSET = wp.constant(CELL_OFFSET)
+KEY_SPAN = wp.constant(1 << CELL_BITS)
 
 
 @wp.func
 def cell_key(p: wp.vec3, cell: float) -> wp.int64:
-    """The key of the world cell of `cell` metres holding p: per axis floor(p / cell) + KEY_OFFSET, clamped to
-    [0, 2^21), packed x, y, z into 63 bits (photoreg.lighting.exposure's map keys)."""
+    """The key of the world cell of `cell` metres holding p, as photoreg.lighting.exposure packs its map's keys:
+    per axis floor(p / cell) + KEY_OFFSET, clamped to [0, KEY_SPAN), packed x, y, z."""
     key = wp.int64(0)
     for a in range(3):
         c = wp.int64(wp.floor(p[a] / cell)) + wp.int64(KEY_OFFSET)
-        key = key * wp.int64(2097152) + wp.clamp(c, wp.int64(0), wp.int64(2097151))
+        key = key * wp.int64(KEY_SPAN) + wp.clamp(c, wp.int64(0), wp.int64(KEY_SPAN) - wp.int64(1))
     return key
 
 
@@ -312,7 +314,7 @@ def radiance_transfer(grid: DenseGrid, points, normals, dirs, ytable, offset: fl
         raise ValueError(f"ytable has {y.shape[0]} rows for {w.shape[0]} directions")
     bands_of(y.shape[1])
     N, D, K = p.shape[0], w.shape[0], y.shape[1]
-    hits = wp.zeros((N, D), dtype=wp.float32, device=device) if hit_distances else None
+    hits = wp.empty((N, D), dtype=wp.float32, device=device) if hit_distances else None  # every ray writes
     occ = _occlusion_pass(grid, p, n, w, offset, ray_length, device, min_step_voxels, virtual, threads, hits)
     transfer = wp.zeros((N, K), dtype=wp.float32, device=device)
     visible = wp.zeros(N, dtype=wp.float32, device=device)

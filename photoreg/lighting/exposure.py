@@ -18,6 +18,8 @@ import numpy as np
 from . import sh
 
 DARK = 1e-3  # luminance below this carries no exposure information (noise, quantisation)
+CELL_BITS = 21                     # cell keys: per axis floor(p / cell) + CELL_OFFSET, clamped to CELL_BITS bits,
+CELL_OFFSET = 1 << (CELL_BITS - 1)  # packed x, y, z (kernels.transfer.cell_key packs the same on the device)
 
 
 class ExposureTracker:
@@ -33,9 +35,9 @@ class ExposureTracker:
         self.last_gain = 1.0
 
     def _keys(self, points: np.ndarray) -> np.ndarray:
-        """Cell key of each (finite) world point (M, 3); kernels.transfer.cell_key packs the same on the device."""
-        c = np.clip(np.floor(points / self.cell).astype(np.int64) + (1 << 20), 0, (1 << 21) - 1)
-        return (c[:, 0] << 42) | (c[:, 1] << 21) | c[:, 2]
+        """Cell key of each (finite) world point (M, 3) (CELL_BITS)."""
+        c = np.clip(np.floor(points / self.cell).astype(np.int64) + CELL_OFFSET, 0, (1 << CELL_BITS) - 1)
+        return (c[:, 0] << (2 * CELL_BITS)) | (c[:, 1] << CELL_BITS) | c[:, 2]
 
     def _cells(self, points: np.ndarray, radiance: np.ndarray):
         """Unique cell keys of the usable samples and their mean luminance."""
