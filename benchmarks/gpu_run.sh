@@ -4,6 +4,9 @@
 # installed into /tmp/site, and libEGL and its kin unpacked from their Debian packages with `dpkg -x` into a
 # folder on LD_LIBRARY_PATH: open3d's CUDA build loads libEGL.so.1, which the image lacks): CUDA correctness,
 # then the figures of benchmarks/gpu.md, benchmarks/speed.md and benchmarks/renderers.md.
+# (2026-11-26: ../shared/hooks/device-wheels' chunks of 60 MB leave no room for the 10 MB working tree in a
+# 64 MiB call: split at 48 MB; its install.sh stopped after the first wheel (`tail | head` under pipefail), so the
+# wheels were cut from the joined chunks by their sizes in Python.)
 # usage: bash benchmarks/gpu_run.sh RECORDING OUTDIR STEP...
 #   speed      cuda_check, `photoreg bench speed` at four settings and on the demo (with and without the
 #              traced light), gpu_profile.py, peers.py
@@ -24,6 +27,10 @@
 #   live       `photoreg serve --device cuda --meshes $PHOTOREG_DATA/meshes` and `photoreg stream RECORDING --session
 #              sessions/tum_fr1_rpy.toml` through it (the bunny composited by the server, JPEG back), every 1 and 4:
 #              frames/s and latency as a client sees them (OUTDIR/live_n*.json, the stream's summary.json)
+#   bounce     the observed bounce (lighting.bounce_observed) on CUDA: cuda_check on RECORDING (4 frames) and on the
+#              demo (8 frames), then `photoreg bench speed` with it and without (--no-observed-bounce), alternating,
+#              two rounds: RECORDING at stride 4 / 64 rays / 3 bands and stride 1 / 169 / 4, the bunny
+#              (sessions/tum_fr1_rpy.toml) and the demo's session (OUTDIR/bounce.json)
 #   sweep      `photoreg bench sweep --device cuda` on SWEEP_SCENES (recordings with lighting_gt.json
 #              made here with `photoreg synth`); VOXELS (default 0.01,0.02) restricts it to fit one call
 set -euo pipefail
@@ -88,7 +95,7 @@ for step in "$@"; do
       mkdir -p "$out/renderers"
       python3 -m photoreg bench renderers --device cuda --synth-dir "$RENDER_SCENES" ${RENDER_ARGS:-} \
         --results-dir "$out/renderers" --md "$out/renderers/renderers.md" --plot "$out/renderers/renderers.png" || true
-      ls "$out/renderers"/renderers_cuda.json ;;   # the rows; the report is redrawn where matplotlib is
+      ls "$out/renderers"/renderers_cuda_*.json ;;   # the rows; the report is redrawn where matplotlib is
     every)
       mkdir -p /tmp/every
       for run in "bare 4 64 3 1" "bare 4 64 3 4" "bare 4 64 3 2" "bare 4 64 3 8" "bare 4 64 3 1" "bare 4 64 3 4" \
@@ -127,6 +134,26 @@ for step in "$@"; do
         cp /tmp/live_n$n/summary.json "$out/live_n$n.json"
       done
       kill $srv; wait $srv || true; tail -3 /tmp/serve.log ;;
+    bounce)
+      # BOUNCE_ROUNDS (default "1 2"): rounds of this call; CHECK=0 leaves the cuda_check runs out (a later call
+      # of the same warm machine: the runs of earlier calls stay in /tmp/bounce and end up in bounce.json too).
+      if [ "${CHECK:-1}" = 1 ]; then
+        python3 benchmarks/cuda_check.py "$rec" 4 | tee "$out/cuda_check_tum.json"
+        python3 benchmarks/cuda_check.py data/demo 8 | tee "$out/cuda_check_demo.json"
+      fi
+      mkdir -p /tmp/bounce
+      for round in ${BOUNCE_ROUNDS:-1 2}; do
+        for run in "bare 4 64 3" "bare 1 169 4" "bunny 4 64 3" "demo 4 64 5"; do
+          set -- $run
+          src=$([ $1 = bare ] && echo "$rec" || ([ $1 = bunny ] && echo sessions/tum_fr1_rpy.toml || echo data/demo/session.toml))
+          for obs in on off; do
+            flag=$([ $obs = on ] && echo "" || echo --no-observed-bounce)
+            python3 -m photoreg bench speed "$src" --device cuda --frames 0:30 --warmup 3 --stride $2 --rays $3 \
+              --bands $4 $flag --json "/tmp/bounce/$1_s$2_${obs}_$round.json" 2>/dev/null | head -1
+          done
+        done
+      done
+      python3 -c "import json, pathlib, sys; json.dump({f.stem: json.loads(f.read_text()) for f in sorted(pathlib.Path('/tmp/bounce').glob('*.json'))}, open(sys.argv[1], 'w'), indent=1)" "$out/bounce.json" ;;
     sweep)
       # The CPU rows of benchmarks/speed_error.csv are kept: copy the merged table and plot back from OUTDIR.
       [ -f "$out/speed_error.csv" ] || cp benchmarks/speed_error.csv "$out/speed_error.csv"

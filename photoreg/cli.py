@@ -139,6 +139,8 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--no-sun", action="store_true", help="without the traced light (lighting.sun = false)")
     b.add_argument("--no-history", action="store_true", help="the current view's samples only (lighting.history = 0)")
     b.add_argument("--no-bounce", action="store_true", help="without the bounce term (lighting.bounce = false)")
+    b.add_argument("--no-observed-bounce", action="store_true",
+                   help="the bounce without the fused luminance of observed hits (lighting.bounce_observed = false)")
     b.add_argument("--json", dest="json_out", help="write the figures to this JSON file")
     b = bsub.add_parser("sweep", help="speed against lighting error over stride x rays x bands x voxel size "
                                       "on generated scenes with ground truth: CSV + Pareto plot")

@@ -18,7 +18,7 @@ def test_bench_renderers_tiny(tmp_path):
                "--device", "cpu", "--synth-dir", str(tmp_path / "scenes"), "--results-dir", str(res),
                "--md", str(tmp_path / "r.md"), "--plot", str(tmp_path / "r.png")])
     assert rc == 0
-    run = json.loads((res / "renderers_cpu.json").read_text())
+    run = json.loads((res / "renderers_cpu_4spp.json").read_text())
     names = {r["renderer"] for r in run["rows"]}
     assert set(RENDERERS) <= names and {f"{n}, true light" for n in RENDERERS} <= names
     for r in run["rows"]:
@@ -35,5 +35,6 @@ def test_bench_renderers_tiny(tmp_path):
     # the shadowing renderers differ from 'none' on the same frames (they do something)
     assert by["voxel"]["rmse"] != by["none"]["rmse"]
     md = (tmp_path / "r.md").read_text()
-    assert run["device_name"] in md and all(f"| tabletop | {n} |" in md for n in RENDERERS)
+    assert f"{run['device_name']} (cpu), ground truth at 4 spp" in md
+    assert all(f"| tabletop | {n} |" in md for n in RENDERERS)
     assert (tmp_path / "r.png").stat().st_size > 1000

@@ -12,7 +12,7 @@ also runs with the generator's true light (the error left is the renderer's), an
 is scored twice: with the path tracer's own object and with that object rendered again with other seeds
 (synth.generate.rerender_inserts; the baseline without the advantage of sharing the ground truth's noise).
 
-Rows go to benchmarks/results/renderers_<device>.json; the report (markdown table and a PNG of
+Rows go to benchmarks/results/renderers_<device>_<spp>spp.json; the report (markdown table and a PNG of
 ms per frame against si-RMSE) is rebuilt from every such file, so CPU and GPU runs end up side by side.
 """
 from __future__ import annotations
@@ -139,7 +139,7 @@ def write_report(results_dir: Path, md: Path, png: Path) -> None:
              "renderer can match; 'baseline, object path-traced with other seeds' pastes the object rendered "
              "again with other seeds: the same baseline as an exact renderer would score it.", ""]
     for run in runs:
-        lines += [f"## {run['device_name']} ({run['device']})", "",
+        lines += [f"## {run['device_name']} ({run['device']}), ground truth at {run['spp']} spp", "",
                   f"Command: `{run['command']}`; {run['date']}; Warp {run['warp']}, Open3D {run['open3d']}; "
                   f"{run['size']}, {run['frames']} frames per recording, {run['spp']} spp."
                   + (f" Note: {run['note']}." if run.get("note") else ""), "",
@@ -162,7 +162,7 @@ def write_report(results_dir: Path, md: Path, png: Path) -> None:
         for j, name in enumerate(names):
             rs = [r for r in run["rows"] if r["renderer"] == name]
             ax.scatter([r["ms_mean"] for r in rs], [r["si_rmse"] for r in rs], marker=markers[k % len(markers)],
-                       color=f"C{j}", label=f"{name} ({run['device_name']})")
+                       color=f"C{j}", label=f"{name} ({run['device_name']}, {run['spp']} spp)")
     ax.set_xscale("log")
     ax.set_xlabel("renderer ms per frame (log)")
     ax.set_ylabel("composite si-RMSE in the ROI (lower is better)")
@@ -205,7 +205,7 @@ def renderers_command(args) -> int:
     run = {"device": device, "device_name": device_name(device), "warp": wp.__version__, "open3d": o3d.__version__,
            "command": "photoreg " + " ".join(sys.argv[1:]), "date": datetime.date.today().isoformat(),
            "size": f"{w}x{h}", "frames": args.frames, "spp": args.spp, "rows": rows}
-    write_json(results / f"renderers_{device.split(':')[0]}.json", run)
+    write_json(results / f"renderers_{device.split(':')[0]}_{args.spp}spp.json", run)
     write_report(results, Path(args.md), Path(args.plot))
     for r in rows:
         ms = "-" if r["ms_mean"] is None else f"{r['ms_mean']:8.1f}"

@@ -63,7 +63,8 @@ def bench_recording(session: Session, warmup: int = 2) -> dict:
         "size": f"{rec.intrinsics.width}x{rec.intrinsics.height}", "frames_timed": len(timings),
         "stride": L.stride, "rays": L.rays, "bands": L.bands, "voxel_size": session.reconstruction.voxel_size,
         "normal_smoothing_voxels": session.reconstruction.normal_smoothing_voxels,
-        "ray_length": L.ray_length, "every": L.every, "sun": L.sun, "bounce": L.bounce, "history": L.history,
+        "ray_length": L.ray_length, "every": L.every, "sun": L.sun, "bounce": L.bounce,
+        "bounce_observed": L.bounce and L.bounce_observed, "history": L.history,
         "sun_refine_every": L.sun_refine_every,
         "objects": len(session.objects), "shadows": session.render.shadows if session.objects else None,
         "ms_mean": {s: round(float(np.mean([t.get(s, 0.0) for t in timings])), 3) for s in stages},
@@ -93,6 +94,7 @@ def speed_command(args) -> int:
     if args.ray_length:
         s.lighting.ray_length = args.ray_length
     s.lighting.sun, s.lighting.bounce = not args.no_sun, not args.no_bounce
+    s.lighting.bounce_observed = not args.no_observed_bounce
     s.lighting.every = args.every
     if args.normal_smoothing is not None:
         s.reconstruction.normal_smoothing_voxels = args.normal_smoothing
@@ -103,7 +105,8 @@ def speed_command(args) -> int:
     stages = "  ".join(f"{k} {v:.1f}" for k, v in res["ms_mean"].items())
     render = f", {res['objects']} object(s) inserted ({res['shadows']})" if res["objects"] else ", no objects"
     print(f"{res['device_name']} ({res['device']}, {res['threads']} CPU threads), {res['size']} stride {res['stride']} "
-          f"rays {res['rays']} bands {res['bands']}, every {res['every']}, sun {res['sun']}, bounce {res['bounce']}, "
+          f"rays {res['rays']} bands {res['bands']}, every {res['every']}, sun {res['sun']}, bounce {res['bounce']} "
+          f"(observed {res['bounce_observed']}), "
           f"history {res['history']}{render}: {res['frames_per_s']} frames/s (median frame: "
           f"{res['frames_per_s_median']})\n  mean ms: {stages}")
     if args.json_out:
