@@ -155,7 +155,7 @@ def write_report(results_dir: Path, md: Path, png: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, ax = plt.subplots(figsize=(7, 4.5))
+    fig, ax = plt.subplots(figsize=(10.5, 4.5))
     markers = "osD^v<>"
     for k, run in enumerate(runs):
         names = sorted({r["renderer"] for r in run["rows"] if r["ms_mean"] is not None})
@@ -167,7 +167,7 @@ def write_report(results_dir: Path, md: Path, png: Path) -> None:
     ax.set_xlabel("renderer ms per frame (log)")
     ax.set_ylabel("composite si-RMSE in the ROI (lower is better)")
     ax.set_title("Shadow renderers: speed against error (one point per scene kind)")
-    ax.legend(fontsize=7)
+    ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0))   # outside: the points stay visible
     fig.tight_layout()
     tmp = png.with_name(png.stem + ".partial.png")
     fig.savefig(tmp, dpi=110)
