@@ -170,7 +170,8 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--frames", type=int, default=8, help="frames per generated recording")
     b.add_argument("--spp", type=int, default=32, help="samples per pixel of generated scenes")
     b.add_argument("--device", choices=["auto", "cpu", "cuda"], default=None)
-    b.add_argument("--results-dir", default="benchmarks/results", help="per-device JSON rows go here")
+    b.add_argument("--results-dir", default="benchmarks/results",
+                   help="JSON rows per device and ground-truth spp go here")
     b.add_argument("--md", default="benchmarks/renderers.md", help="report rebuilt from every device's rows")
     b.add_argument("--plot", default="benchmarks/renderers.png", help="ms against si-RMSE plot")
 
