@@ -25,12 +25,16 @@
 #   refine     the demo alone and with its object, its held light refined every 5th frame (lighting.sun_refine_every
 #              5, the default) against every frame (1), alternating, two rounds (OUTDIR/refine.json)
 #   live       `photoreg serve --device cuda --meshes $PHOTOREG_DATA/meshes` and `photoreg stream RECORDING --session
-#              sessions/tum_fr1_rpy.toml` through it (the bunny composited by the server, JPEG back), every 1 and 4:
-#              frames/s and latency as a client sees them (OUTDIR/live_n*.json, the stream's summary.json)
+#              sessions/tum_fr1_rpy.toml` through it (the bunny composited by the server, JPEG back), every 1 and 4
+#              and --async: frames/s and latency as a client sees them (OUTDIR/live_*.json, the stream's summary.json)
 #   bounce     the observed bounce (lighting.bounce_observed) on CUDA: cuda_check on RECORDING (4 frames) and on the
 #              demo (8 frames), then `photoreg bench speed` with it and without (--no-observed-bounce), alternating,
 #              two rounds: RECORDING at stride 4 / 64 rays / 3 bands and stride 1 / 169 / 4, the bunny
 #              (sessions/tum_fr1_rpy.toml) and the demo's session (OUTDIR/bounce.json)
+#   async      the lighting estimated in a worker thread beside the frames (lighting.asynchronous, --async):
+#              async_check.py on RECORDING and on the demo (8 frames), then `photoreg bench speed` in line and
+#              asynchronous, alternating, ASYNC_ROUNDS (default "1 2") rounds: RECORDING at stride 4 / 64 rays / 3 bands
+#              and stride 1 / 169 / 4, the bunny (sessions/tum_fr1_rpy.toml), the demo's session (OUTDIR/async.json)
 #   sweep      `photoreg bench sweep --device cuda` on SWEEP_SCENES (recordings with lighting_gt.json
 #              made here with `photoreg synth`); VOXELS (default 0.01,0.02) restricts it to fit one call
 set -euo pipefail
@@ -45,6 +49,26 @@ printf 'options = {}\nclock = None\nclass window:\n    class Window:\n        pa
 export PYTHONPATH=/tmp/shim:/tmp/site:$PWD PYTHONUNBUFFERED=1 PHOTOREG_WARP_CACHE=/tmp/warpcache
 export PYOPENGL_PLATFORM=egl
 nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv,noheader
+# alternate DIR ROUNDS MODE1 FLAGS1 MODE2 FLAGS2: per round, `photoreg bench speed` at four settings (RECORDING at
+# stride 4 / 64 rays / 3 bands and stride 1 / 169 / 4, the bunny's session, the demo's), each in both modes, the
+# figures into DIR/<setting>_s<stride>_<mode>_<round>.json; merge DIR OUT: those files into one JSON object.
+alternate() {
+  local dir=$1 rounds=$2 modes=("$3" "$5") flags=("$4" "$6") round run kind stride rays bands src i
+  mkdir -p "$dir"
+  for round in $rounds; do
+    for run in "bare 4 64 3" "bare 1 169 4" "bunny 4 64 3" "demo 4 64 5"; do
+      read -r kind stride rays bands <<< "$run"
+      src=$([ $kind = bare ] && echo "$rec" || ([ $kind = bunny ] && echo sessions/tum_fr1_rpy.toml || echo data/demo/session.toml))
+      for i in 0 1; do
+        python3 -m photoreg bench speed "$src" --device cuda --frames 0:30 --warmup 3 --stride $stride --rays $rays \
+          --bands $bands ${flags[$i]} --json "$dir/${kind}_s${stride}_${modes[$i]}_$round.json" 2>/dev/null
+      done
+    done
+  done
+}
+merge() {
+  python3 -c "import json, pathlib, sys; json.dump({f.stem: json.loads(f.read_text()) for f in sorted(pathlib.Path(sys.argv[1]).glob('*.json'))}, open(sys.argv[2], 'w'), indent=1)" "$1" "$2"
+}
 for step in "$@"; do
   case $step in
     speed)
@@ -128,12 +152,18 @@ for step in "$@"; do
       python3 -m photoreg serve --device cuda --port 8765 --meshes "$PHOTOREG_DATA/meshes" > /tmp/serve.log 2>&1 &
       srv=$!
       for i in $(seq 90); do grep -q "listening on" /tmp/serve.log && break; sleep 1; done
-      for n in 1 4; do
+      for mode in "n1 --every 1" "n4 --every 4" "async --async"; do
+        read -r name flags <<< "$mode"
         python3 -m photoreg stream "$rec" --url ws://127.0.0.1:8765 --session sessions/tum_fr1_rpy.toml \
-          --frames 0:30 --every $n --out /tmp/live_n$n --quiet
-        cp /tmp/live_n$n/summary.json "$out/live_n$n.json"
+          --frames 0:30 $flags --out /tmp/live_$name --quiet
+        cp /tmp/live_$name/summary.json "$out/live_$name.json"
       done
       kill $srv; wait $srv || true; tail -3 /tmp/serve.log ;;
+    async)
+      python3 benchmarks/async_check.py "$rec" 8 | tee "$out/async_check_tum.json"
+      python3 benchmarks/async_check.py data/demo 8 | tee "$out/async_check_demo.json"
+      alternate /tmp/async "${ASYNC_ROUNDS:-1 2}" inline "" async --async
+      merge /tmp/async "$out/async.json" ;;
     bounce)
       # BOUNCE_ROUNDS (default "1 2"): rounds of this call; CHECK=0 leaves the cuda_check runs out (a later call
       # of the same warm machine: the runs of earlier calls stay in /tmp/bounce and end up in bounce.json too).
@@ -141,19 +171,8 @@ for step in "$@"; do
         python3 benchmarks/cuda_check.py "$rec" 4 | tee "$out/cuda_check_tum.json"
         python3 benchmarks/cuda_check.py data/demo 8 | tee "$out/cuda_check_demo.json"
       fi
-      mkdir -p /tmp/bounce
-      for round in ${BOUNCE_ROUNDS:-1 2}; do
-        for run in "bare 4 64 3" "bare 1 169 4" "bunny 4 64 3" "demo 4 64 5"; do
-          set -- $run
-          src=$([ $1 = bare ] && echo "$rec" || ([ $1 = bunny ] && echo sessions/tum_fr1_rpy.toml || echo data/demo/session.toml))
-          for obs in on off; do
-            flag=$([ $obs = on ] && echo "" || echo --no-observed-bounce)
-            python3 -m photoreg bench speed "$src" --device cuda --frames 0:30 --warmup 3 --stride $2 --rays $3 \
-              --bands $4 $flag --json "/tmp/bounce/$1_s$2_${obs}_$round.json" 2>/dev/null | head -1
-          done
-        done
-      done
-      python3 -c "import json, pathlib, sys; json.dump({f.stem: json.loads(f.read_text()) for f in sorted(pathlib.Path('/tmp/bounce').glob('*.json'))}, open(sys.argv[1], 'w'), indent=1)" "$out/bounce.json" ;;
+      alternate /tmp/bounce "${BOUNCE_ROUNDS:-1 2}" on "" off --no-observed-bounce
+      merge /tmp/bounce "$out/bounce.json" ;;
     sweep)
       # The CPU rows of benchmarks/speed_error.csv are kept: copy the merged table and plot back from OUTDIR.
       [ -f "$out/speed_error.csv" ] || cp benchmarks/speed_error.csv "$out/speed_error.csv"

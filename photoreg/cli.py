@@ -33,6 +33,9 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--ray-length", type=float, help="visibility ray length in metres")
     p.add_argument("--every", type=int, help="estimate the lighting on every n-th frame; the frames between hold it "
                                              "(lighting.every, default 1)")
+    p.add_argument("--async", dest="asynchronous", action="store_true",
+                   help="estimate the lighting in a worker thread beside the frames, which hold the latest finished "
+                        "estimate (lighting.asynchronous; live speed)")
     p.add_argument("--depth-filter", type=int, help="bilateral depth filter window in pixels, odd, 0 = off "
                                                     "(reconstruction.depth_filter_px, default 0)")
     p.add_argument("--normal-smoothing", type=float, help="radius in voxels of the ray-cast normals' tangent mean, "
@@ -111,6 +114,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--voxel-size", type=float, help="TSDF voxel size in metres")
     p.add_argument("--ray-length", type=float, help="visibility ray length in metres")
     p.add_argument("--every", type=int, help="ask the server to estimate the lighting on every n-th frame only")
+    p.add_argument("--async", dest="asynchronous", action="store_true",
+                   help="ask the server to estimate the lighting beside the frames (lighting.asynchronous)")
     p.add_argument("--session", help="ask for what `photoreg run SESSION` does: the session file's [lighting], "
                                      "[render] and [[objects]] (meshes named by file name in the server's --meshes)")
     p.add_argument("--composite", choices=["jpeg", "png"], help="encoding of the composites the server sends for "
@@ -133,6 +138,8 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--voxel-size", type=float)
     b.add_argument("--ray-length", type=float)
     b.add_argument("--every", type=int, default=1, help="estimate the lighting on every n-th frame (lighting.every)")
+    b.add_argument("--async", dest="asynchronous", action="store_true",
+                   help="estimate the lighting in a worker thread beside the frames (lighting.asynchronous)")
     b.add_argument("--normal-smoothing", type=float,
                    help="ray-cast normals' tangent mean, radius in voxels (reconstruction.normal_smoothing_voxels)")
     b.add_argument("--threads", type=int, help="CPU threads for the split kernel launches (default: all cores)")

@@ -100,6 +100,11 @@ class LightingConfig:
     # cast and composite, with the latest estimate and their own exposure gain: the host-side solve sets the
     # frame rate on a GPU (benchmarks/gpu.md), and a lighting change is followed at most n - 1 frames later.
     every: int = 1
+    # Estimate the lighting in a worker thread beside the frames (live use): each frame composites with the latest
+    # finished estimate, and a new one starts from the first frame that finds the worker free (and `every` due).
+    # The first frame is estimated in line. The lighting lags by about one solve (2-3 frames on the H100,
+    # benchmarks/gpu.md); which frame's samples gave it: diagnostics.estimated_frame.
+    asynchronous: bool = False
     exposure: bool = True         # per-frame gain against the fused radiance (auto-exposure)
     bounce: bool = True           # one bounce in the model: directions blocked by real geometry see radiance e
     # ... and those whose hit point the camera has seen, its fused luminance (photoreg.lighting.bounce)

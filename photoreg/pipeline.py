@@ -4,11 +4,19 @@ Every stage is timed; timings travel with the FrameResult. Lighting samples are 
 (r*stride, c*stride); the observed radiance there is a box average centred on the pixel (less
 noise at no extra cost) and a sample is used only when its whole box is usable. The solve also
 takes samples of earlier views (photoreg.lighting.history, lighting.history).
+
+With lighting.asynchronous the estimate (samples, transfer, solve, traced light, history, filter) runs in one worker
+thread beside the frames: each frame holds the latest finished estimate, as between estimates with lighting.every.
+The worker alone touches the solve's state (history, filter, light search), since a new estimate starts only when
+the last one is collected; the fused luminance map, which both use, is locked. The worker traces the volume as the
+frames fuse it meanwhile (the same CUDA stream serialises the two; on the CPU it may read a block half-updated).
 """
 from __future__ import annotations
 
 import dataclasses
+import threading
 import time
+from concurrent.futures import Future, ThreadPoolExecutor
 from contextlib import contextmanager
 
 import cv2
@@ -65,6 +73,11 @@ class Pipeline:
         # the latest estimate (frame index, lighting, diagnostics) and how many frames have held it (lighting.every)
         self._held: tuple[int, Lighting, SolveDiagnostics] | None = None
         self._held_for = 0
+        # lighting.asynchronous: the worker, the estimate in flight (its frame index, the frames with a pose seen
+        # when it started, its future) and the frames with a pose so far
+        self._worker = ThreadPoolExecutor(1, thread_name_prefix="photoreg-lighting") if lc.asynchronous else None
+        self._in_flight: tuple[int, int, Future] | None = None
+        self._frames = 0
         # Extra terms (the bounce, the dominant light) only with fixed bands: order selection compares SH models.
         fixed = self.solver_cfg.select == "fixed"
         self.bounce = lc.bounce and fixed
@@ -72,6 +85,7 @@ class Pipeline:
         # the fused surface luminance: the exposure gain's reference and what blocked rays see (observed bounce)
         self.surface = (ExposureTracker(cell=2 * rc.voxel_size) if lc.exposure or self.observed_bounce
                         else None)
+        self._surface_lock = threading.Lock()   # the frames and the asynchronous worker both use it
         self.sun = (SunSearch(SunConfig(candidates=lc.sun_candidates, samples=lc.sun_samples,
                                          min_gain=lc.sun_min_gain, rays=lc.sun_rays,
                                          refine_every=lc.sun_refine_every))
@@ -228,9 +242,10 @@ class Pipeline:
             tr = radiance_transfer(grid, points[traced], normals[traced], self.dirs, self.Y, offset=offset,
                                    ray_length=lc.ray_length, hit_distances=self.observed_bounce)
         with self._timed(t, "solve"):
-            gain = self.surface.gain(points, radiance)[0] if lc.exposure else 1.0
-            bounce = (bounce_columns(tr, points[traced], normals[traced], self.dirs, offset, self.surface)
-                      if self.observed_bounce else np.zeros((len(traced), 2)))
+            with self._surface_lock:
+                gain = self.surface.gain(points, radiance)[0] if lc.exposure else 1.0
+                bounce = (bounce_columns(tr, points[traced], normals[traced], self.dirs, offset, self.surface)
+                          if self.observed_bounce else np.zeros((len(traced), 2)))
             current = Samples(radiance[traced] / gain, tr.transfer, normals[traced], points[traced],
                               tr.visible_fraction, bounce)
             data = self.history.with_current(current, kept) if self.history is not None else current
@@ -265,8 +280,33 @@ class Pipeline:
                 filtered, diag.change_detected = self.filter.update(sol, new_view)
                 F = Lighting(filtered)
             if self.surface is not None:
-                self.surface.update(points, radiance / gain)
+                with self._surface_lock:
+                    self.surface.update(points, radiance / gain)
         return F, diag, gain
+
+    def _estimate_beside(self, index: int, prep: Prepared, maps, pose: np.ndarray, grid):
+        """_estimate_lighting in the worker thread (lighting.asynchronous): (lighting, diagnostics, its stages' ms)."""
+        t: dict[str, float] = {}
+        F, diag, _ = self._estimate_lighting(prep, maps, pose, grid, t)
+        diag.estimated_frame = index
+        return F, diag, t
+
+    def _collect(self, t: dict[str, float]) -> None:
+        """Hold the finished estimate of the worker (its error is raised here); its stages' ms go into t as
+        'worker <stage>' (they ran beside the frames since it started)."""
+        index, started, future = self._in_flight
+        self._in_flight = None
+        F, diag, worker_t = future.result()
+        self._held = (index, F, dataclasses.replace(diag, notes=list(diag.notes)))
+        self._held_for = self._frames - 1 - started   # frames after its own before this one, as lighting.every counts
+        for stage, ms in worker_t.items():
+            t["worker " + stage] = ms
+
+    def close(self) -> None:
+        """Wait for the estimate in flight (lighting.asynchronous) and stop the worker; idempotent."""
+        if self._worker is not None:
+            self._worker.shutdown(wait=True)
+            self._in_flight = None
 
     def _hold(self, prep: Prepared, maps, pose: np.ndarray,
               t: dict[str, float]) -> tuple[Lighting, SolveDiagnostics, float]:
@@ -277,8 +317,11 @@ class Pipeline:
         if self.session.lighting.exposure:
             with self._timed(t, "sample"):
                 radiance, points, _ = self._samples(prep, maps, pose, GAIN_SAMPLES)
-                gain = self.surface.gain(points, radiance)[0]
-        note = f"lighting of frame {index} held (lighting.every = {self.session.lighting.every})"
+                with self._surface_lock:
+                    gain = self.surface.gain(points, radiance)[0]
+        note = (f"lighting of frame {index}, estimated beside the frames since (lighting.asynchronous)"
+                if self._worker is not None else
+                f"lighting of frame {index} held (lighting.every = {self.session.lighting.every})")
         diag = dataclasses.replace(held, notes=[note] + held.notes, exposure_gain=gain, change_detected=False)
         return Lighting(F.sh.copy()), diag, gain
 
@@ -305,13 +348,21 @@ class Pipeline:
                  t: dict[str, float], t_start: float | None = None) -> FrameResult:
         """Ray cast, transfer, solve (and render) on the fused volume for an observed frame; ms into t,
         t["total"] measured from t_start (default: now). Between estimates (lighting.every) the latest one is
-        held: no transfer or solve, the ray cast only where the render stage or the exposure gain needs it."""
+        held: no transfer or solve, the ray cast only where the render stage or the exposure gain needs it. With
+        lighting.asynchronous every frame after the first holds the latest finished estimate, and a frame that finds
+        the worker free (and lighting.every due) hands its estimate to it."""
         lc, rc = self.session.lighting, self.session.reconstruction
         t_all = time.perf_counter() if t_start is None else t_start
         F, diag, composite = None, None, None
         if pose is not None:
-            hold = self._held is not None and self._held_for + 1 < lc.every
-            if not hold or self.render is not None or lc.exposure:
+            self._frames += 1
+            if self._in_flight is not None and self._in_flight[2].done():
+                self._collect(t)
+            due = self._held is None or self._held_for + 1 >= lc.every
+            beside = self._worker is not None and self._held is not None   # estimates run in the worker
+            hold = not due or beside
+            start = beside and due and self._in_flight is None
+            if not hold or start or self.render is not None or lc.exposure:
                 with self._timed(t, "raycast"):
                     grid = self.volume.dense_grid()
                     maps = raycast_surface(grid, self.intrinsics, pose, rc.depth_min, rc.depth_max, stride=lc.stride,
@@ -319,8 +370,12 @@ class Pipeline:
             if hold:
                 self._held_for += 1
                 F, diag, gain = self._hold(prep, maps, pose, t)
+                if start:
+                    self._in_flight = (frame.index, self._frames, self._worker.submit(
+                        self._estimate_beside, frame.index, prep, maps, pose, grid))
             else:
                 F, diag, gain = self._estimate_lighting(prep, maps, pose, grid, t)
+                diag.estimated_frame = frame.index
                 self._held, self._held_for = (frame.index, F, dataclasses.replace(diag, notes=list(diag.notes))), 0
             if self.render is not None:
                 with self._timed(t, "render"):

@@ -41,6 +41,8 @@ def session_from_args(args) -> Session:
         s.recording.use_poses = False
     if args.video:
         s.output.video = True
+    if args.asynchronous:
+        s.lighting.asynchronous = True
     for opt, section, key in (("stride", "lighting", "stride"), ("rays", "lighting", "rays"),
                               ("bands", "lighting", "bands"), ("ray_length", "lighting", "ray_length"),
                               ("every", "lighting", "every"),
@@ -127,21 +129,24 @@ def run_session(s: Session, quiet: bool = False, on_frame: Callable[[int, int], 
     partial = out / "lighting.jsonl.partial"
     t0 = time.perf_counter()
     with open(partial, "w") as f:
-        for frame in iter_frames(rec, indices, on_error=lambda i, msg: skipped.append({"frame": i, "error": msg})):
-            r = pipe.process(frame)
-            results.append(r)
-            f.write(json.dumps(result_record(r)) + "\n")
-            f.flush()
-            k = s.output.pictures_every
-            if k and (len(results) - 1) % k == 0:
-                write_pictures(out, r, frame.pose)
-            if r.composite is not None:
-                write_composite(out, r, pipe.render.last.ratio)
-                if video is not None:
-                    video.write(r.composite)
-            progress.step(f"frame {frame.index}" + (" (weak)" if r.diagnostics.weak else ""))
-            if on_frame is not None:
-                on_frame(len(results), len(indices))
+        try:
+            for frame in iter_frames(rec, indices, on_error=lambda i, msg: skipped.append({"frame": i, "error": msg})):
+                r = pipe.process(frame)
+                results.append(r)
+                f.write(json.dumps(result_record(r)) + "\n")
+                f.flush()
+                k = s.output.pictures_every
+                if k and (len(results) - 1) % k == 0:
+                    write_pictures(out, r, frame.pose)
+                if r.composite is not None:
+                    write_composite(out, r, pipe.render.last.ratio)
+                    if video is not None:
+                        video.write(r.composite)
+                progress.step(f"frame {frame.index}" + (" (weak)" if r.diagnostics.weak else ""))
+                if on_frame is not None:
+                    on_frame(len(results), len(indices))
+        finally:
+            pipe.close()
     progress.close()
     os.replace(partial, out / "lighting.jsonl")
     if video is not None:

@@ -96,6 +96,7 @@ class SolveDiagnostics:
     sun: dict | None = None
     bounce_radiance: list | None = None      # (3,) radiance the blocked directions see (the one-bounce term)
     bounce_observed: list | None = None      # (3,) colour gain on the observed radiance they see (bounce_observed)
+    estimated_frame: int | None = None       # the frame whose samples gave this lighting (earlier when held)
 
     def to_json(self) -> dict:
         cond = self.condition_number
@@ -104,6 +105,8 @@ class SolveDiagnostics:
                "effective_rank": int(self.effective_rank),
                "residual_rms": float(self.residual_rms), "weak": bool(self.weak),
                "notes": list(self.notes)}
+        if self.estimated_frame is not None:
+            out["estimated_frame"] = int(self.estimated_frame)
         if self.bands:
             out.update({"bands": int(self.bands), "regularization": self.regularization,
                         "albedo": [[round(float(x), 5) for x in row] for row in self.albedo],

@@ -180,15 +180,21 @@ def test_thread_settings(monkeypatch):
 def test_bench_speed_times_the_render_stage_of_a_session(tmp_path):
     """`photoreg bench speed` on a session file inserts its objects and times the render stage (R_TRV, G-buffer,
     composite) with the rest; on the recording alone there is no render stage (that run also without the
-    observed bounce: --no-observed-bounce reaches the session and the figures say so)."""
+    observed bounce: --no-observed-bounce reaches the session and the figures say so; and with --async: the
+    estimates collected and the lighting's age in frames are reported)."""
     demo = Path(__file__).resolve().parents[1] / "data" / "demo"
     for src, name in ((demo / "session.toml", "session"), (demo, "recording")):
         out = tmp_path / f"{name}.json"
-        off = ["--no-observed-bounce"] if name == "recording" else []
+        off = ["--no-observed-bounce", "--async"] if name == "recording" else []
         assert main(["bench", "speed", str(src), "--device", "cpu", "--frames", "0:3", "--warmup", "1",
                      "--rays", "16", "--json", str(out)] + off) == 0
         res = json.loads(out.read_text())
         assert res["bounce"] and res["bounce_observed"] == (name == "session")
+        assert res["asynchronous"] == (name == "recording")
+        if name == "session":   # every frame estimated in line: its own lighting
+            assert res["estimates"] == 2 and res["lag_frames_mean"] == 0
+        else:                   # the timed frames hold frame 0's in-line estimate or a later one of the worker
+            assert 1 <= res["estimates"] <= 2 and 0 < res["lag_frames_mean"] <= 2
         if name == "session":
             assert res["objects"] == 1 and res["shadows"] == "voxel" and res["ms_mean"]["render"] > 0
         else:

@@ -270,6 +270,18 @@ def test_replay_matches_direct_pipeline(server, recording, tmp_path):
         np.testing.assert_allclose(r["sh"], sh, atol=2e-7)
 
 
+def test_asynchronous_lighting_through_the_server(server, recording, tmp_path):
+    """`photoreg stream --async` asks for lighting.asynchronous (a hello option): frame 0 is estimated in line and
+    equals the direct pipeline's, every later reply carries a finite estimate of an earlier frame or its own
+    frame's (diagnostics.estimated_frame, never going back), and the connection's worker ends with it."""
+    records, summary = stream(recording, server.server.url, tmp_path / "out", "--async")
+    assert [r["frame"] for r in records] == list(range(N_FRAMES)) and not summary["errors"]
+    est = [r["diagnostics"]["estimated_frame"] for r in records]
+    assert est[0] == 0 and all(e <= r["frame"] for e, r in zip(est, records)) and est == sorted(est), est
+    assert all(np.isfinite(r["sh"]).all() for r in records)
+    np.testing.assert_allclose(records[0]["sh"], direct_lighting(recording)[0], atol=2e-7)
+
+
 def test_streamed_composites_equal_the_direct_pipeline_s(tmp_path):
     """`photoreg stream data/demo --session data/demo/session.toml --composite png --every 2` through a server whose
     mesh folder holds the demo's object: each frame's composite arrives (after its lighting) and equals, pixel for

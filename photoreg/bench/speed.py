@@ -45,13 +45,19 @@ def bench_recording(session: Session, warmup: int = 2) -> dict:
     if len(indices) <= warmup:
         raise ValueError(f"bench: need more than {warmup} frames (warm-up), got {len(indices)}")
     pipe = Pipeline(session, rec.intrinsics)
-    timings = []
-    for k, frame in enumerate(iter_frames(rec, indices)):
-        r = pipe.process(frame)
-        if k >= warmup:
-            timings.append(r.timings_ms)
-        print(f"\rbench: frame {k + 1}/{len(indices)}", end="", file=sys.stderr, flush=True)
+    timings, estimated = [], []
+    try:
+        for k, frame in enumerate(iter_frames(rec, indices)):
+            r = pipe.process(frame)
+            if k >= warmup:
+                timings.append(r.timings_ms)
+                if r.diagnostics.estimated_frame is not None:
+                    estimated.append((frame.index, r.diagnostics.estimated_frame))
+            print(f"\rbench: frame {k + 1}/{len(indices)}", end="", file=sys.stderr, flush=True)
+    finally:
+        pipe.close()
     print(file=sys.stderr)
+    lags = [i - e for i, e in estimated]
     # frames holding the lighting skip stages: every stage any frame ran, the total last
     stages = [s for s in dict.fromkeys(s for t in timings for s in t) if s != "total"] + ["total"]
     L = session.lighting
@@ -63,7 +69,10 @@ def bench_recording(session: Session, warmup: int = 2) -> dict:
         "size": f"{rec.intrinsics.width}x{rec.intrinsics.height}", "frames_timed": len(timings),
         "stride": L.stride, "rays": L.rays, "bands": L.bands, "voxel_size": session.reconstruction.voxel_size,
         "normal_smoothing_voxels": session.reconstruction.normal_smoothing_voxels,
-        "ray_length": L.ray_length, "every": L.every, "sun": L.sun, "bounce": L.bounce,
+        "ray_length": L.ray_length, "every": L.every, "asynchronous": L.asynchronous, "sun": L.sun, "bounce": L.bounce,
+        # frames between a frame and the one whose samples gave its lighting (0: its own), and how many estimates
+        "lag_frames_mean": round(float(np.mean(lags)), 3) if lags else None,
+        "estimates": len({e for _, e in estimated}),
         "bounce_observed": L.bounce and L.bounce_observed, "history": L.history,
         "sun_refine_every": L.sun_refine_every,
         "objects": len(session.objects), "shadows": session.render.shadows if session.objects else None,
@@ -96,6 +105,7 @@ def speed_command(args) -> int:
     s.lighting.sun, s.lighting.bounce = not args.no_sun, not args.no_bounce
     s.lighting.bounce_observed = not args.no_observed_bounce
     s.lighting.every = args.every
+    s.lighting.asynchronous = args.asynchronous
     if args.normal_smoothing is not None:
         s.reconstruction.normal_smoothing_voxels = args.normal_smoothing
     if args.no_history:
@@ -104,9 +114,11 @@ def speed_command(args) -> int:
     res = bench_recording(s, warmup=args.warmup)
     stages = "  ".join(f"{k} {v:.1f}" for k, v in res["ms_mean"].items())
     render = f", {res['objects']} object(s) inserted ({res['shadows']})" if res["objects"] else ", no objects"
+    mode = (f" asynchronous ({res['estimates']} estimates, lighting {res['lag_frames_mean']} frames old on average)"
+            if res["asynchronous"] else "")
     print(f"{res['device_name']} ({res['device']}, {res['threads']} CPU threads), {res['size']} stride {res['stride']} "
-          f"rays {res['rays']} bands {res['bands']}, every {res['every']}, sun {res['sun']}, bounce {res['bounce']} "
-          f"(observed {res['bounce_observed']}), "
+          f"rays {res['rays']} bands {res['bands']}, every {res['every']}{mode}, sun {res['sun']}, "
+          f"bounce {res['bounce']} (observed {res['bounce_observed']}), "
           f"history {res['history']}{render}: {res['frames_per_s']} frames/s (median frame: "
           f"{res['frames_per_s_median']})\n  mean ms: {stages}")
     if args.json_out:

@@ -265,7 +265,8 @@ def stream_command(args) -> int:
         raise ValueError(f"{args.recording}: no frames selected (recording has {len(rec)}, --frames {args.frames!r})")
     options: dict = session_options(args.session) if args.session else {}
     lighting = {k: v for k, v in (("bands", args.bands), ("rays", args.rays), ("stride", args.stride),
-                                  ("ray_length", args.ray_length), ("every", args.every)) if v is not None}
+                                  ("ray_length", args.ray_length), ("every", args.every),
+                                  ("asynchronous", args.asynchronous or None)) if v is not None}
     if lighting:
         options["lighting"] = {**options.get("lighting", {}), **lighting}
     if args.voxel_size is not None:

@@ -139,7 +139,12 @@ class Connection:
             self.queue.clear()
             # Hold the client slot until the pipeline thread is free, so that clients that connect and drop
             # cannot pile up threads beyond max_clients (bounded by the shutdown timeout when stopping).
-            wait = asyncio.to_thread(self.executor.shutdown, True)
+            def release() -> None:
+                self.executor.shutdown(True)
+                if self.pipeline is not None:
+                    self.pipeline.close()   # its lighting worker (lighting.asynchronous)
+
+            wait = asyncio.to_thread(release)
             try:
                 await asyncio.wait_for(wait, self.cfg.shutdown_timeout if self.stop_reason else None)
             except TimeoutError:
