@@ -24,7 +24,7 @@
 #              light; the settings alternate (calls differ by 20-40%); every run's figures into OUTDIR/every.json
 #   refine     the demo alone and with its object, its held light refined every 5th frame (lighting.sun_refine_every
 #              5, the default) against every frame (1), alternating, two rounds (OUTDIR/refine.json)
-#   live       `photoreg serve --device cuda --meshes $PHOTOREG_DATA/meshes` and `photoreg stream RECORDING --session
+#   live       (needs the websockets wheel too) `photoreg serve --device cuda --meshes $PHOTOREG_DATA/meshes` and `photoreg stream RECORDING --session
 #              sessions/tum_fr1_rpy.toml` through it (the bunny composited by the server, JPEG back), every 1 and 4
 #              and --async: frames/s and latency as a client sees them (OUTDIR/live_*.json, the stream's summary.json)
 #   bounce     the observed bounce (lighting.bounce_observed) on CUDA: cuda_check on RECORDING (4 frames) and on the

@@ -148,6 +148,17 @@ def test_lighting_every_holds_the_estimate_between_estimates(tmp_path, monkeypat
         validate(s)
 
 
+def test_held_frames_ray_cast_coarser_only_where_the_gain_keeps_its_samples():
+    """A held frame with no render stage ray casts only for its exposure gain: at 640x480 and stride 1 at stride 4
+    (19200 pixels for 2000 samples), never finer than the lighting's stride, and on a 64x48 frame at its own."""
+    for (w, h), stride, expected in (((640, 480), 1, 4), ((640, 480), 2, 4), ((640, 480), 8, 8), ((64, 48), 2, 2),
+                                     ((64, 48), 1, 1)):
+        s = Session(device="cpu")
+        s.lighting.stride = stride
+        k = Intrinsics(w, h, 0.9 * w, 0.9 * w, w / 2 - 0.5, h / 2 - 0.5, 5000.0)
+        assert pipeline_module.Pipeline(s, k)._gain_stride() == expected, (w, stride)
+
+
 def test_asynchronous_lighting_is_the_in_line_estimate_one_frame_later(tmp_path):
     """lighting.asynchronous with a worker that always finishes before the next frame (waited for here, as a slow
     camera would): frame 0 is estimated in line, every later frame hands its estimate to the worker and holds the
