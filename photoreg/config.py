@@ -102,8 +102,8 @@ class LightingConfig:
     every: int = 1
     # Estimate the lighting in a worker thread beside the frames (live use): each frame composites with the latest
     # finished estimate, and a new one starts from the first frame that finds the worker free (and `every` due).
-    # The first frame is estimated in line. The lighting lags by about one solve (2-3 frames on the H100,
-    # benchmarks/gpu.md); which frame's samples gave it: diagnostics.estimated_frame.
+    # The first frame is estimated in line. The lighting lags by about one estimate (TUM on the H100: 3.6-4.3 frames,
+    # 50-60 ms, at 57-71 frames/s; benchmarks/gpu.md); which frame's samples gave it: diagnostics.estimated_frame.
     asynchronous: bool = False
     exposure: bool = True         # per-frame gain against the fused radiance (auto-exposure)
     bounce: bool = True           # one bounce in the model: directions blocked by real geometry see radiance e
