@@ -23,8 +23,8 @@ def run(rec, frames, device: str, asynchronous: bool, wait: bool):
     out = []
     for f in iter_frames(rec, frames):
         out.append(pipe.process(f))
-        if wait and pipe._in_flight is not None:
-            pipe._in_flight[2].result()
+        if wait:
+            pipe.wait_for_estimate()
     pipe.close()
     return out
 

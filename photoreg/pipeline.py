@@ -16,7 +16,7 @@ from __future__ import annotations
 import dataclasses
 import threading
 import time
-from concurrent.futures import Future, ThreadPoolExecutor
+from concurrent import futures
 from contextlib import contextmanager
 
 import cv2
@@ -76,8 +76,9 @@ class Pipeline:
         self._held_for = 0
         # lighting.asynchronous: the worker, the estimate in flight (its frame index, the frames with a pose seen
         # when it started, its future) and the frames with a pose so far
-        self._worker = ThreadPoolExecutor(1, thread_name_prefix="photoreg-lighting") if lc.asynchronous else None
-        self._in_flight: tuple[int, int, Future] | None = None
+        self._worker = (futures.ThreadPoolExecutor(1, thread_name_prefix="photoreg-lighting") if lc.asynchronous
+                        else None)
+        self._in_flight: tuple[int, int, futures.Future] | None = None
         self._frames = 0
         # Extra terms (the bounce, the dominant light) only with fixed bands: order selection compares SH models.
         fixed = self.solver_cfg.select == "fixed"
@@ -238,9 +239,9 @@ class Pipeline:
         with self._timed(t, "solve"):
             return sun, self._solve(data, previous, terms, current=len(current)), own
 
-    def _estimate_lighting(self, prep: Prepared, maps, pose: np.ndarray, grid,
+    def _estimate_lighting(self, index: int, prep: Prepared, maps, pose: np.ndarray, grid,
                            t: dict[str, float]) -> tuple[Lighting, SolveDiagnostics, float]:
-        """(lighting, diagnostics, exposure gain) of a frame: samples, transfer, solve, traced light, history,
+        """(lighting, diagnostics, exposure gain) of frame `index`: samples, transfer, solve, traced light, history,
         temporal filter."""
         lc, rc = self.session.lighting, self.session.reconstruction
         with self._timed(t, "sample"):
@@ -270,7 +271,7 @@ class Pipeline:
                 diag.bounce_radiance = np.round(sol.terms["bounce"], 7).tolist()
             if "bounce_observed" in sol.terms:
                 diag.bounce_observed = np.round(sol.terms["bounce_observed"], 5).tolist()
-            diag.exposure_gain = gain
+            diag.exposure_gain, diag.estimated_frame = gain, index
             new_view = False   # whether the history took this frame's samples as a new view
             if self.history is not None:  # keep the view's samples its own solve fitted, if enough
                 # without an own solve: those the solve of the current and kept samples fitted (the current
@@ -296,8 +297,7 @@ class Pipeline:
     def _estimate_beside(self, index: int, prep: Prepared, maps, pose: np.ndarray, grid):
         """_estimate_lighting in the worker thread (lighting.asynchronous): (lighting, diagnostics, its stages' ms)."""
         t: dict[str, float] = {}
-        F, diag, _ = self._estimate_lighting(prep, maps, pose, grid, t)
-        diag.estimated_frame = index
+        F, diag, _ = self._estimate_lighting(index, prep, maps, pose, grid, t)
         return F, diag, t
 
     def _collect(self, t: dict[str, float]) -> None:
@@ -310,6 +310,12 @@ class Pipeline:
         self._held_for = self._frames - 1 - started   # frames after its own before this one, as lighting.every counts
         for stage, ms in worker_t.items():
             t["worker " + stage] = ms
+
+    def wait_for_estimate(self) -> None:
+        """Block until the estimate in flight (lighting.asynchronous) is done; the next frame then collects it (and
+        raises its error). A replay that calls this after every frame gets the in-line estimates one frame later."""
+        if self._in_flight is not None:
+            futures.wait([self._in_flight[2]])
 
     def close(self) -> None:
         """Wait for the estimate in flight (lighting.asynchronous) and stop the worker; idempotent."""
@@ -385,8 +391,7 @@ class Pipeline:
                     self._in_flight = (frame.index, self._frames, self._worker.submit(
                         self._estimate_beside, frame.index, prep, maps, pose, grid))
             else:
-                F, diag, gain = self._estimate_lighting(prep, maps, pose, grid, t)
-                diag.estimated_frame = frame.index
+                F, diag, gain = self._estimate_lighting(frame.index, prep, maps, pose, grid, t)
                 self._held, self._held_for = (frame.index, F, dataclasses.replace(diag, notes=list(diag.notes))), 0
             if self.render is not None:
                 with self._timed(t, "render"):

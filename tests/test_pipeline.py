@@ -3,7 +3,6 @@ from __future__ import annotations
 
 import dataclasses
 import json
-from concurrent import futures
 from pathlib import Path
 
 import cv2
@@ -178,8 +177,7 @@ def test_asynchronous_lighting_is_the_in_line_estimate_one_frame_later(tmp_path)
     results = []
     for f in frames:
         results.append(pipe.process(f))
-        if pipe._in_flight is not None:
-            pipe._in_flight[2].result()
+        pipe.wait_for_estimate()
     pipe.close()
     assert [r.diagnostics.estimated_frame for r in results] == [0, 0, 1, 2, 3, 4]
     assert np.array_equal(results[0].lighting.sh, expected[0].lighting.sh)
@@ -221,7 +219,7 @@ def test_asynchronous_lighting_runs_free_and_raises_the_workers_error(tmp_path, 
     frames = list(iter_frames(rec, range(4)))
     pipe.process(frames[0])
     pipe.process(frames[1])
-    futures.wait([pipe._in_flight[2]])
+    pipe.wait_for_estimate()
     with pytest.raises(FloatingPointError, match="solver broke"):
         pipe.process(frames[2])
     pipe.close()
