@@ -87,7 +87,7 @@ def main() -> int:
                                      hit_distances=True)
 
         def bounce(tr):
-            return observed_bounce(tr, points, normals, dirs, offset, walls.cell, walls.keys, walls.lum)
+            return observed_bounce(tr, points, normals, dirs, offset, walls.cell, *walls.map[:2])
 
         tr = transfer()
         cols = bounce(tr)

@@ -35,6 +35,9 @@
 #              async_check.py on RECORDING and on the demo (8 frames), then `photoreg bench speed` in line and
 #              asynchronous, alternating, ASYNC_ROUNDS (default "1 2") rounds: RECORDING at stride 4 / 64 rays / 3 bands
 #              and stride 1 / 169 / 4, the bunny (sessions/tum_fr1_rpy.toml), the demo's session (OUTDIR/async.json)
+#   ab         this tree against the package in $OLD (an earlier commit: `git archive COMMIT photoreg | tar -x -C OLD`),
+#              `photoreg bench speed $AB_FLAGS` alternating, AB_ROUNDS (default "1 2") rounds: RECORDING at stride 4 /
+#              64 rays / 3 bands and stride 1 / 169 / 4, the bunny (sessions/tum_fr1_rpy.toml) (OUTDIR/ab.json)
 #   sweep      `photoreg bench sweep --device cuda` on SWEEP_SCENES (recordings with lighting_gt.json
 #              made here with `photoreg synth`); VOXELS (default 0.01,0.02) restricts it to fit one call
 set -euo pipefail
@@ -49,6 +52,10 @@ printf 'options = {}\nclock = None\nclass window:\n    class Window:\n        pa
 export PYTHONPATH=/tmp/shim:/tmp/site:$PWD PYTHONUNBUFFERED=1 PHOTOREG_WARP_CACHE=/tmp/warpcache
 export PYOPENGL_PLATFORM=egl
 nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv,noheader
+# input_of KIND: what `photoreg bench speed` reads for bare (RECORDING), bunny (its session) and demo (the demo's session)
+input_of() {
+  case $1 in bare) echo "$rec" ;; bunny) echo sessions/tum_fr1_rpy.toml ;; demo) echo data/demo/session.toml ;; esac
+}
 # alternate DIR ROUNDS MODE1 FLAGS1 MODE2 FLAGS2: per round, `photoreg bench speed` at four settings (RECORDING at
 # stride 4 / 64 rays / 3 bands and stride 1 / 169 / 4, the bunny's session, the demo's), each in both modes, the
 # figures into DIR/<setting>_s<stride>_<mode>_<round>.json; merge DIR OUT: those files into one JSON object.
@@ -58,7 +65,7 @@ alternate() {
   for round in $rounds; do
     for run in "bare 4 64 3" "bare 1 169 4" "bunny 4 64 3" "demo 4 64 5"; do
       read -r kind stride rays bands <<< "$run"
-      src=$([ $kind = bare ] && echo "$rec" || ([ $kind = bunny ] && echo sessions/tum_fr1_rpy.toml || echo data/demo/session.toml))
+      src=$(input_of $kind)
       for i in 0 1; do
         python3 -m photoreg bench speed "$src" --device cuda --frames 0:30 --warmup 3 --stride $stride --rays $rays \
           --bands $bands ${flags[$i]} --json "$dir/${kind}_s${stride}_${modes[$i]}_$round.json" 2>/dev/null
@@ -126,7 +133,7 @@ for step in "$@"; do
                  "bunny 4 64 3 1" "bunny 4 64 3 4" "bunny 4 64 3 1" "bunny 4 64 3 4" "bare 1 169 4 1" \
                  "bare 1 169 4 4" "demo 4 64 5 1" "demo 4 64 5 4"; do
         set -- $run
-        src=$([ $1 = bare ] && echo "$rec" || ([ $1 = bunny ] && echo sessions/tum_fr1_rpy.toml || echo data/demo/session.toml))
+        src=$(input_of $1)
         python3 -m photoreg bench speed "$src" --device cuda --frames 0:30 --warmup 3 --stride $2 --rays $3 \
           --bands $4 --every $5 --json "/tmp/every/$(ls /tmp/every | wc -l)_$1_s$2_n$5.json" 2>/dev/null
       done
@@ -173,6 +180,20 @@ for step in "$@"; do
       fi
       alternate /tmp/bounce "${BOUNCE_ROUNDS:-1 2}" on "" off --no-observed-bounce
       merge /tmp/bounce "$out/bounce.json" ;;
+    ab)
+      mkdir -p /tmp/ab
+      for round in ${AB_ROUNDS:-1 2}; do
+        for run in "bare 4 64 3" "bare 1 169 4" "bunny 4 64 3"; do
+          read -r kind stride rays bands <<< "$run"
+          src=$(realpath "$(input_of $kind)")
+          for code in old new; do   # the old package first on the path, run from elsewhere (not this tree's)
+            (cd $([ $code = old ] && echo "$OLD" || echo "$PWD") && PYTHONPATH=$PWD:$PYTHONPATH python3 -m photoreg \
+              bench speed "$src" --device cuda --frames 0:30 --warmup 3 --stride $stride --rays $rays --bands $bands \
+              ${AB_FLAGS:-} --json "/tmp/ab/${kind}_s${stride}_${code}_$round.json" 2>/dev/null)
+          done
+        done
+      done
+      merge /tmp/ab "$out/ab.json" ;;
     sweep)
       # The CPU rows of benchmarks/speed_error.csv are kept: copy the merged table and plot back from OUTDIR.
       [ -f "$out/speed_error.csv" ] || cp benchmarks/speed_error.csv "$out/speed_error.csv"

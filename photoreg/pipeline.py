@@ -8,13 +8,13 @@ takes samples of earlier views (photoreg.lighting.history, lighting.history).
 With lighting.asynchronous the estimate (samples, transfer, solve, traced light, history, filter) runs in one worker
 thread beside the frames: each frame holds the latest finished estimate, as between estimates with lighting.every.
 The worker alone touches the solve's state (history, filter, light search), since a new estimate starts only when
-the last one is collected; the fused luminance map, which both use, is locked. The worker traces the volume as the
+the last one is collected; the fused luminance map, which both use, is replaced whole by the worker's update
+(ExposureTracker.map), so the frames read it without a lock. The worker traces the volume as the
 frames fuse it meanwhile (the same CUDA stream serialises the two; on the CPU it may read a block half-updated).
 """
 from __future__ import annotations
 
 import dataclasses
-import threading
 import time
 from concurrent import futures
 from contextlib import contextmanager
@@ -87,7 +87,6 @@ class Pipeline:
         # the fused surface luminance: the exposure gain's reference and what blocked rays see (observed bounce)
         self.surface = (ExposureTracker(cell=2 * rc.voxel_size) if lc.exposure or self.observed_bounce
                         else None)
-        self._surface_lock = threading.Lock()   # the frames and the asynchronous worker both use it
         self.sun = (SunSearch(SunConfig(candidates=lc.sun_candidates, samples=lc.sun_samples,
                                          min_gain=lc.sun_min_gain, rays=lc.sun_rays,
                                          refine_every=lc.sun_refine_every))
@@ -252,10 +251,9 @@ class Pipeline:
             tr = radiance_transfer(grid, points[traced], normals[traced], self.dirs, self.Y, offset=offset,
                                    ray_length=lc.ray_length, hit_distances=self.observed_bounce)
         with self._timed(t, "solve"):
-            with self._surface_lock:
-                gain = self.surface.gain(points, radiance)[0] if lc.exposure else 1.0
-                bounce = (bounce_columns(tr, points[traced], normals[traced], self.dirs, offset, self.surface)
-                          if self.observed_bounce else np.zeros((len(traced), 2)))
+            gain = self.surface.gain(points, radiance)[0] if lc.exposure else 1.0
+            bounce = (bounce_columns(tr, points[traced], normals[traced], self.dirs, offset, self.surface)
+                      if self.observed_bounce else np.zeros((len(traced), 2)))
             current = Samples(radiance[traced] / gain, tr.transfer, normals[traced], points[traced],
                               tr.visible_fraction, bounce)
             data = self.history.with_current(current, kept) if self.history is not None else current
@@ -290,8 +288,7 @@ class Pipeline:
                 filtered, diag.change_detected = self.filter.update(sol, new_view)
                 F = Lighting(filtered)
             if self.surface is not None:
-                with self._surface_lock:
-                    self.surface.update(points, radiance / gain)
+                self.surface.update(points, radiance / gain)
         return F, diag, gain
 
     def _estimate_beside(self, index: int, prep: Prepared, maps, pose: np.ndarray, grid):
@@ -332,8 +329,7 @@ class Pipeline:
         if self.session.lighting.exposure:
             with self._timed(t, "sample"):
                 radiance, points, _ = self._samples(prep, maps, pose, GAIN_SAMPLES)
-                with self._surface_lock:
-                    gain = self.surface.gain(points, radiance)[0]
+                gain = self.surface.gain(points, radiance)[0]
         note = (f"lighting of frame {index}, estimated beside the frames since (lighting.asynchronous)"
                 if self._worker is not None else
                 f"lighting of frame {index} held (lighting.every = {self.session.lighting.every})")

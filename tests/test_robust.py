@@ -498,7 +498,11 @@ def test_exposure_gain_against_fused_radiance():
     frame[:300] *= 5.0  # highlights / new shadows do not move the median
     g, matched = ex.gain(points + rng.normal(0, 0.002, points.shape), frame)
     assert matched > 100 and abs(g - 1.7) < 0.05
+    before = ex.map
+    kept = [a.copy() for a in before]
     ex.update(points, frame / g)
+    # replaced whole, never written in place: a frame reading the map beside the worker's update sees one map
+    assert ex.map is not before and all(np.array_equal(a, b) for a, b in zip(before, kept))
     g2, matched = ex.gain(points + 10.0, radiance)  # no overlap: keep the last gain
     assert matched == 0 and g2 == g
     ex.gain(np.full((10, 3), np.nan), np.full((10, 3), np.nan))  # garbage: no crash

@@ -35,7 +35,8 @@ def bounce_columns(tr: TransferResult, points: np.ndarray, normals: np.ndarray, 
     """(N, 2) columns b_obs, b_unk (module docstring) of the N samples of a transfer pass with hit distances
     (kernels.transfer.radiance_transfer(..., hit_distances=True)) along `dirs` from points + normals * offset,
     the luminance of what the rays hit taken from `surface`'s map."""
-    return observed_bounce(tr, points, normals, dirs, offset, surface.cell, surface.keys, surface.lum)
+    keys, lum, _ = surface.map
+    return observed_bounce(tr, points, normals, dirs, offset, surface.cell, keys, lum)
 
 
 def observed_bounce_terms(columns: np.ndarray, transfer: np.ndarray, radiance: np.ndarray) -> list[Term]:

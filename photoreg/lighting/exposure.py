@@ -29,9 +29,9 @@ class ExposureTracker:
         if not (cell > 0 and memory >= 1 and min_matches >= 1):
             raise ValueError("cell > 0, memory >= 1 and min_matches >= 1 are required")
         self.cell, self.memory, self.min_matches = cell, memory, min_matches
-        self.keys = np.zeros(0, dtype=np.int64)
-        self.lum = np.zeros(0)
-        self.count = np.zeros(0)
+        # (sorted cell keys, mean luminance, count): replaced whole by update, so a thread that reads it once sees
+        # one consistent map while another updates it (lighting.asynchronous: the frames and the worker, no lock)
+        self.map = (np.zeros(0, dtype=np.int64), np.zeros(0), np.zeros(0))
         self.last_gain = 1.0
 
     def _keys(self, points: np.ndarray) -> np.ndarray:
@@ -47,21 +47,23 @@ class ExposureTracker:
         uniq, inv = np.unique(self._keys(p[ok]), return_inverse=True)
         return uniq, np.bincount(inv, weights=lum[ok]) / np.bincount(inv)
 
-    def _find(self, keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(position in the map, whether the map holds it) of each cell key."""
-        if len(self.keys) == 0:
+    @staticmethod
+    def _find(map_keys: np.ndarray, keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(position in the sorted `map_keys`, whether they hold it) of each cell key."""
+        if len(map_keys) == 0:
             return np.zeros(len(keys), dtype=np.int64), np.zeros(len(keys), dtype=bool)
-        pos = np.minimum(np.searchsorted(self.keys, keys), len(self.keys) - 1)
-        return pos, self.keys[pos] == keys
+        pos = np.minimum(np.searchsorted(map_keys, keys), len(map_keys) - 1)
+        return pos, map_keys[pos] == keys
 
     def gain(self, points: np.ndarray, radiance: np.ndarray) -> tuple[float, int]:
         """(gain of this frame relative to the map, number of cells compared); the last gain when
         fewer than min_matches cells overlap (1 for the first frame)."""
+        map_keys, map_lum, _ = self.map
         keys, lum = self._cells(points, radiance)
-        pos, hit = self._find(keys)
+        pos, hit = self._find(map_keys, keys)
         n = int(hit.sum())
         if n >= self.min_matches:
-            g = float(np.exp(np.median(np.log(lum[hit]) - np.log(self.lum[pos[hit]]))))
+            g = float(np.exp(np.median(np.log(lum[hit]) - np.log(map_lum[pos[hit]]))))
             if np.isfinite(g) and g > 0:
                 self.last_gain = g
         return self.last_gain, n
@@ -71,11 +73,12 @@ class ExposureTracker:
         keys, lum = self._cells(points, radiance)
         if keys.size == 0:
             return
-        all_keys = np.union1d(self.keys, keys)
+        map_keys, map_lum, map_count = self.map
+        all_keys = np.union1d(map_keys, keys)
         new_lum, new_count = np.zeros(len(all_keys)), np.zeros(len(all_keys))
-        old = np.searchsorted(all_keys, self.keys)
-        new_lum[old], new_count[old] = self.lum, self.count
+        old = np.searchsorted(all_keys, map_keys)
+        new_lum[old], new_count[old] = map_lum, map_count
         at = np.searchsorted(all_keys, keys)
         new_count[at] = np.minimum(new_count[at] + 1, self.memory)
         new_lum[at] += (lum - new_lum[at]) / new_count[at]
-        self.keys, self.lum, self.count = all_keys, new_lum, new_count
+        self.map = (all_keys, new_lum, new_count)

@@ -195,7 +195,9 @@ def composite(camera: np.ndarray, layers: Layers) -> np.ndarray:
     x0, y0, x1, y1 = layers.region if layers.region is not None else (0, 0, W, H)
     if x1 > x0 and y1 > y0:
         box = slice(y0, y1), slice(x0, x1)
-        a = layers.alpha[box][..., None]
+        # alpha as three channels: numpy's broadcast of an (h, w, 1) view over (h, w, 3) ones took 3 of the blend's
+        # 3.3 ms on TUM with the bunny (a 325 x 297 box), this 0.6 (the same products: the same bits)
+        a = cv2.merge([layers.alpha[box]] * 3)
         blend = (1.0 - a) * out[box] * layers.ratio[box] + a * layers.colour[box]
         out[box] = np.nan_to_num(blend, nan=0.0, posinf=0.0, neginf=0.0)
     return out

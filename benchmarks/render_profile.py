@@ -1,0 +1,76 @@
+"""Where the render stage's time goes (issue 9: with an object inserted the render stage sets the frame rate).
+Runs the pipeline over a session's frames on one device and profiles (cProfile) the render stage alone, after the
+warm-up frames; prints and writes the functions with the most time per frame, cumulative and own:
+
+    python3 benchmarks/render_profile.py sessions/tum_fr1_rpy.toml --device cuda --frames 0:25 --json OUT.json
+
+On CUDA a kernel's time lands where the host waits for it (a synchronisation, a copy to the host).
+"""
+from __future__ import annotations
+
+import argparse
+import cProfile
+import json
+import pstats
+import sys
+import time
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("session")
+    ap.add_argument("--device", default="cuda")
+    ap.add_argument("--frames", default="0:25")
+    ap.add_argument("--warmup", type=int, default=5)
+    ap.add_argument("--stride", type=int, default=4)
+    ap.add_argument("--rays", type=int, default=64)
+    ap.add_argument("--bands", type=int, default=3)
+    ap.add_argument("--top", type=int, default=30)
+    ap.add_argument("--json")
+    a = ap.parse_args()
+
+    from photoreg.config import load_session, parse_frames
+    from photoreg.io.recording import iter_frames, open_recording
+    from photoreg.pipeline import Pipeline
+
+    s = load_session(a.session)
+    s.device, s.lighting.stride, s.lighting.rays, s.lighting.bands = a.device, a.stride, a.rays, a.bands
+    if not s.objects:
+        sys.exit(f"{a.session}: no [[objects]], no render stage to profile")
+    rec = open_recording(s.recording.path, fmt=s.recording.format)
+    indices = parse_frames(a.frames, len(rec))
+    pipe = Pipeline(s, rec.intrinsics)
+    stage, prof, walls = pipe.render, cProfile.Profile(), []
+
+    def profiled(*args, **kwargs):
+        t0 = time.perf_counter()
+        out = prof.runcall(stage, *args, **kwargs)
+        walls.append((time.perf_counter() - t0) * 1000.0)
+        return out
+
+    for k, frame in enumerate(iter_frames(rec, indices)):
+        pipe.render = profiled if k >= a.warmup else stage
+        pipe.process(frame)
+    pipe.close()
+    n = len(walls)
+    stats = pstats.Stats(prof)
+    rows = []
+    for (path, line, name), (_, calls, own, cum, _) in stats.stats.items():
+        rows.append({"function": f"{path.split('site-packages/')[-1]}:{line}({name})", "calls_per_frame":
+                     round(calls / n, 2), "own_ms": round(own * 1000 / n, 3), "cumulative_ms": round(cum * 1000 / n, 3)})
+    out = {"session": a.session, "device": pipe.device, "frames_profiled": n, "stride": a.stride, "rays": a.rays,
+           "bands": a.bands, "render_ms_mean": round(sum(walls) / n, 3),
+           "by_cumulative": sorted(rows, key=lambda r: -r["cumulative_ms"])[:a.top],
+           "by_own": sorted(rows, key=lambda r: -r["own_ms"])[:a.top]}
+    print(f"render stage on {pipe.device}: {out['render_ms_mean']} ms a frame (profiled, {n} frames)")
+    for key in ("by_cumulative", "by_own"):
+        print(f"-- {key} (ms a frame)")
+        for r in out[key]:
+            print(f"{r['cumulative_ms']:8.2f} {r['own_ms']:8.2f} {r['calls_per_frame']:7.1f}  {r['function']}")
+    if a.json:
+        with open(a.json, "w") as f:
+            json.dump(out, f, indent=1)
+
+
+if __name__ == "__main__":
+    main()
