@@ -14,7 +14,7 @@ from photoreg.config import ObjectConfig
 from photoreg.kernels.raycast import raycast_surface
 from photoreg.kernels.transfer import VIRTUAL, any_blocked, make_direction_set, radiance_transfer
 from photoreg.lighting import sh
-from photoreg.render.composite import RenderInput, composite, shade
+from photoreg.render.composite import RenderInput, composite, shade, upsample_ratio
 from photoreg.render.gbuffer import GBufferRenderer
 from photoreg.render.registry import get_renderer
 from photoreg.render.scene import load_scene, object_transform, sdf_grid, voxel_grid
@@ -236,6 +236,21 @@ def test_render_window_holds_the_object_and_its_seam(tmp_path):
     inside = LOOK_DOWN.copy()
     inside[2, 3] = 0.1                                                    # the camera within the cube's height
     assert stage.window(inside) == (0, 0, INTR.width, INTR.height)
+
+
+def test_upsampled_ratio_in_a_window_is_the_full_frames_there():
+    """upsample_ratio over a window (the seam band reads only the real surface's window) gives the full frame's
+    values there, bit for bit, and 1 where the samples' box does not reach; a window off the box is all 1."""
+    rng = np.random.default_rng(3)
+    ratio_s = rng.uniform(0.2, 1.0, (30, 40, 2)).astype(np.float32)
+    near = np.zeros((30, 40), bool)
+    near[10:18, 12:25] = True
+    full = upsample_ratio(ratio_s, near, 4, (120, 160))
+    for x0, y0, x1, y1 in ((30, 20, 90, 100), (0, 0, 160, 120), (50, 60, 51, 61), (100, 35, 160, 90)):
+        part = upsample_ratio(ratio_s, near, 4, (120, 160), window=(x0, y0, x1, y1))
+        assert part.shape == (y1 - y0, x1 - x0, 2) and np.array_equal(part, full[y0:y1, x0:x1])
+    assert (full[:, :40] == 1).all() and (full[40:72, 52:96] < 1).any()
+    assert (upsample_ratio(ratio_s, near, 4, (120, 160), window=(0, 0, 30, 20)) == 1).all()
 
 
 @pytest.mark.parametrize("shadows", ["voxel", "none"])

@@ -7,8 +7,8 @@ import numpy as np
 from photoreg.kernels.transfer import any_blocked, radiance_transfer
 from photoreg.lighting import sh
 from photoreg.lighting.parametric import ParametricLight, cone_directions
-from photoreg.render.composite import (Layers, RenderInput, at_stride, bounce, near_objects, seam_band, set_seam,
-                                      shade, shadow_ratio, stride_box, union_box, upsample_ratio)
+from photoreg.render.composite import (Layers, RenderInput, at_stride, bounce, box_distance2, near_objects, seam_band,
+                                      set_seam, shade, shadow_ratio, stride_box, union_box, upsample_ratio)
 
 
 CLOSE = 0.5  # the real surface within this share of the objects' size is what their blocked rays see
@@ -19,12 +19,17 @@ def _covered(inp: RenderInput) -> np.ndarray:
     return inp.gbuffer.coverage[inp.gbuffer.box] > 0
 
 
-def _virtual_colour(inp: RenderInput, shading: np.ndarray, covered: np.ndarray) -> np.ndarray:
-    """albedo * shading (camera units, no albedo) at the `covered` pixels of the G-buffer's window (_covered),
-    zero elsewhere."""
-    colour = np.zeros(inp.camera.shape, np.float32)
+def _object_colour(inp: RenderInput, shading: np.ndarray, covered: np.ndarray) -> np.ndarray:
+    """albedo * shading (camera units, no albedo), float32 (N, 3), at the `covered` pixels of the G-buffer's
+    window (_covered)."""
     box = inp.gbuffer.box
-    colour[box][covered] = inp.gbuffer.albedo[box][covered] * np.maximum(shading, 0.0)
+    return (inp.gbuffer.albedo[box][covered] * np.maximum(shading, 0.0)).astype(np.float32)
+
+
+def _virtual_colour(inp: RenderInput, values: np.ndarray, covered: np.ndarray) -> np.ndarray:
+    """The frame's colour layer: _object_colour's `values` at the `covered` pixels, zero elsewhere."""
+    colour = np.zeros(inp.camera.shape, np.float32)
+    colour[inp.gbuffer.box][covered] = values
     return colour
 
 
@@ -89,7 +94,8 @@ def render_voxel(inp: RenderInput) -> Layers:
             light = None
             notes.append("no directional light in F: SH transfer only")
     cone = None if light is None else cone_directions(light.direction, light.angle, inp.light_rays).astype(np.float32)
-    near = near_objects(maps, inp.bounds, inp.ray_length)
+    distance2 = box_distance2(maps, inp.bounds)
+    near = near_objects(maps, inp.bounds, inp.ray_length, distance2)
     l_real = real_radiance(inp, near)
     covered = _covered(inp)
     band = seam_band(inp, near)
@@ -110,8 +116,8 @@ def render_voxel(inp: RenderInput) -> Layers:
     passes = _transfers(inp, F, light, cone, np.concatenate([gb.position[gb.box][covered], points[hit]]),
                         np.concatenate([gb.normal[gb.box][covered], normals[hit]]))
     on_object = _rows(passes, 0, n_obj)
-    colour = _virtual_colour(inp, _shading(inp, F, on_object, l_real, l_real)[1], covered)
-    l_virt = colour[gb.box][covered].mean(axis=0) if covered.any() else np.zeros(3, np.float32)
+    values = _object_colour(inp, _shading(inp, F, on_object, l_real, l_real)[1], covered)
+    l_virt = values.mean(axis=0) if n_obj else np.zeros(3, np.float32)
 
     # shadow_ratio's eps guard averages over the shadowed points of each set (stride samples, seam) apart
     ratio_pts = np.ones((len(points), 3), np.float32)
@@ -129,17 +135,18 @@ def render_voxel(inp: RenderInput) -> Layers:
     # shadow, not the mean of the whole neighbourhood: re-shade it with that (demo frames 10 and 20 against
     # the path tracer: the object's darkest third 24% -> 14% too bright at frame 10, the whole object at
     # most 10.9% -> 7.6% off per channel; composite si-RMSE, mean of the two frames, 0.071 -> 0.064).
-    close = near_objects(maps, inp.bounds, CLOSE * float(np.max(inp.bounds[1] - inp.bounds[0])))
+    close = near_objects(maps, inp.bounds, CLOSE * float(np.max(inp.bounds[1] - inp.bounds[0])), distance2)
     if close.any():
         l_close = real_radiance(inp, close, ratio_s)
-        colour = _virtual_colour(inp, _shading(inp, F, on_object, l_close, l_close)[1], covered)
+        values = _object_colour(inp, _shading(inp, F, on_object, l_close, l_close)[1], covered)
     region = union_box(gb.window, stride_box(near, maps.stride, ratio.shape[:2]))
-    return Layers(colour, gb.coverage, ratio, notes, region)
+    return Layers(_virtual_colour(inp, values, covered), gb.coverage, ratio, notes, region)
 
 
 def render_none(inp: RenderInput) -> Layers:
     """The object lit by the unoccluded lighting; real pixels unchanged (the 'no shadow' baseline)."""
     covered = _covered(inp)
     transfer = sh.unoccluded_transfer(inp.gbuffer.normal[inp.gbuffer.box][covered], sh.bands_of(inp.F.shape[1]))
-    return Layers(_virtual_colour(inp, inp.gain * shade(inp.F, transfer), covered), inp.gbuffer.coverage,
+    return Layers(_virtual_colour(inp, _object_colour(inp, inp.gain * shade(inp.F, transfer), covered), covered),
+                  inp.gbuffer.coverage,
                   np.ones(inp.camera.shape, np.float32), region=inp.gbuffer.window)
