@@ -140,6 +140,9 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--every", type=int, default=1, help="estimate the lighting on every n-th frame (lighting.every)")
     b.add_argument("--async", dest="asynchronous", action="store_true",
                    help="estimate the lighting in a worker thread beside the frames (lighting.asynchronous)")
+    b.add_argument("--no-solve-process", action="store_true",
+                   help="with --async, the robust solves in the worker thread, not a child process "
+                        "(lighting.solve_process = false)")
     b.add_argument("--normal-smoothing", type=float,
                    help="ray-cast normals' tangent mean, radius in voxels (reconstruction.normal_smoothing_voxels)")
     b.add_argument("--threads", type=int, help="CPU threads for the split kernel launches (default: all cores)")

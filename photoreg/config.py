@@ -105,6 +105,9 @@ class LightingConfig:
     # The first frame is estimated in line. The lighting lags by about one estimate (TUM on the H100: 3.6-4.3 frames,
     # 50-60 ms, at 57-71 frames/s; benchmarks/gpu.md); which frame's samples gave it: diagnostics.estimated_frame.
     asynchronous: bool = False
+    # ... and its robust solves in a child process of their own: the frames and the solve then share no interpreter
+    # lock (beside the worker thread a frame's host work took 13-16 ms instead of 7.5-8 on the H100; gpu.md)
+    solve_process: bool = True
     exposure: bool = True         # per-frame gain against the fused radiance (auto-exposure)
     bounce: bool = True           # one bounce in the model: directions blocked by real geometry see radiance e
     # ... and those whose hit point the camera has seen, its fused luminance (photoreg.lighting.bounce)

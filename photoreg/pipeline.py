@@ -11,10 +11,13 @@ The worker alone touches the solve's state (history, filter, light search), sinc
 the last one is collected; the fused luminance map, which both use, is replaced whole by the worker's update
 (ExposureTracker.map), so the frames read it without a lock. The worker traces the volume as the
 frames fuse it meanwhile (the same CUDA stream serialises the two; on the CPU it may read a block half-updated).
+With lighting.solve_process the worker hands its robust solves (pure functions of their samples) to a child
+process, so the frames do not wait for the solve's interpreter lock.
 """
 from __future__ import annotations
 
 import dataclasses
+import multiprocessing
 import time
 from concurrent import futures
 from contextlib import contextmanager
@@ -42,6 +45,14 @@ from .types import Frame, FrameResult, Intrinsics, Lighting, SolveDiagnostics
 SAMPLE_SURPLUS = 1.5  # candidates checked per sample kept (the depth agreement test drops a few)
 GAIN_SAMPLES = 2000   # samples of a frame that holds the lighting (lighting.every): only its exposure gain
 GAIN_STRIDE = 4       # ... ray cast up to this stride where nothing else needs the maps (Pipeline._gain_stride)
+
+
+def _solve_process() -> futures.ProcessPoolExecutor:
+    """A child process for the asynchronous worker's robust solves (lighting.solve_process), spawned (a fork would
+    copy the CUDA context) and its imports done now, so the first estimate does not wait for them."""
+    pool = futures.ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn"))
+    pool.submit(exec, "import photoreg.lighting.robust").result()
+    return pool
 
 
 class Pipeline:
@@ -80,6 +91,7 @@ class Pipeline:
                         else None)
         self._in_flight: tuple[int, int, futures.Future] | None = None
         self._frames = 0
+        self._solver = _solve_process() if lc.asynchronous and lc.solve_process else None
         # Extra terms (the bounce, the dominant light) only with fixed bands: order selection compares SH models.
         fixed = self.solver_cfg.select == "fixed"
         self.bounce = lc.bounce and fixed
@@ -187,8 +199,15 @@ class Pipeline:
             terms.append(sun_term(sun, seen, data.normals, disc, cfg.fit_bands))
             # the SH part of the joint solve holds only what the traced light leaves: regularised more (config.py)
             cfg = dataclasses.replace(cfg, regularization=lc.sun_regularization)
-        return solve(data.radiance, data.transfer, data.normals, data.visible, cfg, points=data.points,
-                     reference=previous, terms=terms, start=start, current=current)
+        args = (data.radiance, data.transfer, data.normals, data.visible, cfg)
+        kwargs = dict(points=data.points, reference=previous, terms=terms, start=start, current=current)
+        if self._solver is not None:   # lighting.solve_process: the same function, in the child process
+            try:
+                return self._solver.submit(solve, *args, **kwargs).result()
+            except futures.BrokenExecutor as e:   # the child died (BrokenProcessPool)
+                raise RuntimeError("the lighting's solve process stopped (killed, or out of memory?); "
+                                   "lighting.solve_process = false solves in the worker thread instead") from e
+        return solve(*args, **kwargs)
 
     def _find_sun(self, grid, current: Samples, sol, terms: list[Term]) -> Sun | None:
         """The dominant light (photoreg.lighting.sun) from the current view's samples and their solve `sol`
@@ -315,10 +334,14 @@ class Pipeline:
             futures.wait([self._in_flight[2]])
 
     def close(self) -> None:
-        """Wait for the estimate in flight (lighting.asynchronous) and stop the worker; idempotent."""
+        """Wait for the estimate in flight (lighting.asynchronous) and stop the worker and its solve process;
+        idempotent."""
         if self._worker is not None:
             self._worker.shutdown(wait=True)
             self._in_flight = None
+        if self._solver is not None:
+            self._solver.shutdown(wait=True)
+            self._solver = None
 
     def _hold(self, prep: Prepared, maps, pose: np.ndarray,
               t: dict[str, float]) -> tuple[Lighting, SolveDiagnostics, float]:

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import multiprocessing
 from pathlib import Path
 
 import cv2
@@ -161,9 +162,11 @@ def test_held_frames_ray_cast_coarser_only_where_the_gain_keeps_its_samples():
 def test_asynchronous_lighting_is_the_in_line_estimate_one_frame_later(tmp_path):
     """lighting.asynchronous with a worker that always finishes before the next frame (waited for here, as a slow
     camera would): frame 0 is estimated in line, every later frame hands its estimate to the worker and holds the
-    one before, so frame k + 1 shows exactly the in-line pipeline's lighting of frame k (same history, filter and
-    fused luminance); the solve's stages run in the worker ('worker solve' in the collecting frame's ms), and a
-    frame exposed at half the radiance still gets its own gain 0.5."""
+    one before, so frame k + 1 shows the in-line pipeline's lighting of frame k (same history, filter and fused
+    luminance), to rounding with the solves in the child process (lighting.solve_process: arrays unpickled at other
+    addresses sum in another order; 1e-13 on the demo) and exactly in the worker thread; the solve's stages run in
+    the worker ('worker solve' in the collecting frame's ms), and a frame exposed at half the radiance still gets
+    its own gain 0.5."""
     k = Intrinsics(64, 48, 56.0, 56.0, 31.5, 23.5, 5000.0)
     rec = open_recording(write_recording(tmp_path / "rec", k, 6, with_gt=False))
     frames = [dataclasses.replace(f, color=linear_to_srgb(0.5 * srgb_to_linear(f.color))) if f.index == 4 else f
@@ -173,27 +176,30 @@ def test_asynchronous_lighting_is_the_in_line_estimate_one_frame_later(tmp_path)
     inline = pipeline_module.Pipeline(s, rec.intrinsics)
     expected = [inline.process(f) for f in frames]
     s.lighting.asynchronous = True
-    pipe = pipeline_module.Pipeline(s, rec.intrinsics)
-    results = []
-    for f in frames:
-        results.append(pipe.process(f))
-        pipe.wait_for_estimate()
-    pipe.close()
-    assert [r.diagnostics.estimated_frame for r in results] == [0, 0, 1, 2, 3, 4]
-    assert np.array_equal(results[0].lighting.sh, expected[0].lighting.sh)
-    for r in results[1:]:
-        assert np.array_equal(r.lighting.sh, expected[r.index - 1].lighting.sh), r.index
-        assert "solve" not in r.timings_ms
-        assert r.diagnostics.notes[0].startswith(f"lighting of frame {r.index - 1}, estimated beside")
-    assert all("worker solve" in r.timings_ms for r in results[2:])
-    gains = [r.diagnostics.exposure_gain for r in results]
-    assert abs(gains[4] - 0.5) < 0.1 and all(abs(g - 1) < 0.1 for i, g in enumerate(gains) if i != 4), gains
+    for process in (True, False):
+        s.lighting.solve_process = process
+        pipe = pipeline_module.Pipeline(s, rec.intrinsics)
+        results = []
+        for f in frames:
+            results.append(pipe.process(f))
+            pipe.wait_for_estimate()
+        pipe.close()
+        assert [r.diagnostics.estimated_frame for r in results] == [0, 0, 1, 2, 3, 4]
+        for r in results:
+            got, want = r.lighting.sh, expected[max(r.index - 1, 0)].lighting.sh
+            assert np.allclose(got, want, rtol=1e-9, atol=1e-12) if process else np.array_equal(got, want), r.index
+        for r in results[1:]:
+            assert "solve" not in r.timings_ms
+            assert r.diagnostics.notes[0].startswith(f"lighting of frame {r.index - 1}, estimated beside")
+        assert all("worker solve" in r.timings_ms for r in results[2:])
+        gains = [r.diagnostics.exposure_gain for r in results]
+        assert abs(gains[4] - 0.5) < 0.1 and all(abs(g - 1) < 0.1 for i, g in enumerate(gains) if i != 4), gains
 
 
 def test_asynchronous_lighting_runs_free_and_raises_the_workers_error(tmp_path, monkeypatch):
     """Not waited for: every frame is processed with a finite, earlier frame's lighting (never a later one, never
-    going back), `photoreg run --async` writes every record; a solve that fails in the worker fails the frame that
-    collects it instead of passing silently."""
+    going back), `photoreg run --async` writes every record; a solve that fails in the worker thread, or a solve
+    process that dies (lighting.solve_process), fails the frame that collects it instead of passing silently."""
     out = tmp_path / "demo"
     assert main(["demo", "--out", str(out), "--frames", "0:6", "--rays", "16", "--async", "--quiet"]) == 0
     records = read_jsonl(out / "lighting.jsonl")
@@ -211,12 +217,25 @@ def test_asynchronous_lighting_runs_free_and_raises_the_workers_error(tmp_path, 
         failing.calls += 1
         return solve(*args, **kwargs)
 
-    failing.calls = 0
-    monkeypatch.setattr(pipeline_module, "solve", failing)
     s = Session(device="cpu")
     s.lighting.rays, s.lighting.stride, s.lighting.sun, s.lighting.asynchronous = 16, 2, False, True
-    pipe = pipeline_module.Pipeline(s, rec.intrinsics)
     frames = list(iter_frames(rec, range(4)))
+    before = set(multiprocessing.active_children())
+    pipe = pipeline_module.Pipeline(s, rec.intrinsics)
+    pipe.process(frames[0])   # in line, solved in the child process
+    for child in set(multiprocessing.active_children()) - before:
+        child.kill()
+        child.join()
+    pipe.process(frames[1])
+    pipe.wait_for_estimate()
+    with pytest.raises(RuntimeError, match="solve process stopped"):
+        pipe.process(frames[2])
+    pipe.close()
+
+    failing.calls = 0
+    monkeypatch.setattr(pipeline_module, "solve", failing)
+    s.lighting.solve_process = False   # the worker thread solves
+    pipe = pipeline_module.Pipeline(s, rec.intrinsics)
     pipe.process(frames[0])
     pipe.process(frames[1])
     pipe.wait_for_estimate()

@@ -69,7 +69,8 @@ def bench_recording(session: Session, warmup: int = 2) -> dict:
         "size": f"{rec.intrinsics.width}x{rec.intrinsics.height}", "frames_timed": len(timings),
         "stride": L.stride, "rays": L.rays, "bands": L.bands, "voxel_size": session.reconstruction.voxel_size,
         "normal_smoothing_voxels": session.reconstruction.normal_smoothing_voxels,
-        "ray_length": L.ray_length, "every": L.every, "asynchronous": L.asynchronous, "sun": L.sun, "bounce": L.bounce,
+        "ray_length": L.ray_length, "every": L.every, "asynchronous": L.asynchronous,
+        "solve_process": L.asynchronous and L.solve_process, "sun": L.sun, "bounce": L.bounce,
         # frames between a frame and the one whose samples gave its lighting (0: its own), and how many estimates
         "lag_frames_mean": round(float(np.mean(lags)), 3) if lags else None,
         "estimates": len({e for _, e in estimated}),
@@ -106,6 +107,7 @@ def speed_command(args) -> int:
     s.lighting.bounce_observed = not args.no_observed_bounce
     s.lighting.every = args.every
     s.lighting.asynchronous = args.asynchronous
+    s.lighting.solve_process = not args.no_solve_process
     if args.normal_smoothing is not None:
         s.reconstruction.normal_smoothing_voxels = args.normal_smoothing
     if args.no_history:
@@ -114,7 +116,8 @@ def speed_command(args) -> int:
     res = bench_recording(s, warmup=args.warmup)
     stages = "  ".join(f"{k} {v:.1f}" for k, v in res["ms_mean"].items())
     render = f", {res['objects']} object(s) inserted ({res['shadows']})" if res["objects"] else ", no objects"
-    mode = (f" asynchronous ({res['estimates']} estimates, lighting {res['lag_frames_mean']} frames old on average)"
+    mode = (f" asynchronous ({res['estimates']} estimates, lighting {res['lag_frames_mean']} frames old on average, "
+            f"solved in {'a child process' if res['solve_process'] else 'the worker thread'})"
             if res["asynchronous"] else "")
     print(f"{res['device_name']} ({res['device']}, {res['threads']} CPU threads), {res['size']} stride {res['stride']} "
           f"rays {res['rays']} bands {res['bands']}, every {res['every']}{mode}, sun {res['sun']}, "
