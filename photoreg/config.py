@@ -102,8 +102,8 @@ class LightingConfig:
     every: int = 1
     # Estimate the lighting in a worker thread beside the frames (live use): each frame composites with the latest
     # finished estimate, and a new one starts from the first frame that finds the worker free (and `every` due).
-    # The first frame is estimated in line. The lighting lags by about one estimate (TUM on the H100: 3.6-4.3 frames,
-    # 50-60 ms, at 57-71 frames/s; benchmarks/gpu.md); which frame's samples gave it: diagnostics.estimated_frame.
+    # The first frame is estimated in line. The lighting lags by about one estimate (TUM on the H100: 3.6-5.6 frames,
+    # 55-85 ms, at 64-83 frames/s; benchmarks/gpu.md); which frame's samples gave it: diagnostics.estimated_frame.
     asynchronous: bool = False
     # ... and its robust solves in a child process of their own: the frames and the solve then share no interpreter
     # lock (beside the worker thread a frame's host work took 13-16 ms instead of 7.5-8 on the H100; gpu.md)
