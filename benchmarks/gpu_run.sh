@@ -39,6 +39,9 @@
 #              the worker thread (--no-solve-process): async_check.py on RECORDING and on the demo (8 frames), then
 #              `photoreg bench speed --async` both ways, alternating, PROCESS_ROUNDS (default "1 2") rounds
 #              (OUTDIR/process.json)
+#   held       frames that only hold the lighting (`--every 1000`: no estimate after the first frame, no worker) against
+#              `--async`, alternating, HELD_ROUNDS (default "1 2") rounds: what the worker still costs the frames
+#              (OUTDIR/held.json)
 #   ab         this tree against the package in $OLD (an earlier commit: `git archive COMMIT photoreg | tar -x -C OLD`),
 #              `photoreg bench speed $AB_FLAGS` alternating, AB_ROUNDS (default "1 2") rounds: RECORDING at stride 4 /
 #              64 rays / 3 bands and stride 1 / 169 / 4, the bunny (sessions/tum_fr1_rpy.toml) (OUTDIR/ab.json)
@@ -180,6 +183,9 @@ for step in "$@"; do
       python3 benchmarks/async_check.py data/demo 8 | tee "$out/async_check_demo.json"
       alternate /tmp/process "${PROCESS_ROUNDS:-1 2}" process --async thread "--async --no-solve-process"
       merge /tmp/process "$out/process.json" ;;
+    held)
+      alternate /tmp/held "${HELD_ROUNDS:-1 2}" held "--every 1000" async --async
+      merge /tmp/held "$out/held.json" ;;
     bounce)
       # BOUNCE_ROUNDS (default "1 2"): rounds of this call; CHECK=0 leaves the cuda_check runs out (a later call
       # of the same warm machine: the runs of earlier calls stay in /tmp/bounce and end up in bounce.json too).
