@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import gc
 import json
+import multiprocessing
 import os
 import re
 import signal
@@ -273,13 +274,24 @@ def test_replay_matches_direct_pipeline(server, recording, tmp_path):
 def test_asynchronous_lighting_through_the_server(server, recording, tmp_path):
     """`photoreg stream --async` asks for lighting.asynchronous (a hello option): frame 0 is estimated in line and
     equals the direct pipeline's, every later reply carries a finite estimate of an earlier frame or its own
-    frame's (diagnostics.estimated_frame, never going back), and the connection's worker ends with it."""
+    frame's (diagnostics.estimated_frame, never going back), and neither the connection's worker thread nor its solve
+    process (lighting.solve_process) outlives the connection."""
+    before = set(multiprocessing.active_children())
     records, summary = stream(recording, server.server.url, tmp_path / "out", "--async")
     assert [r["frame"] for r in records] == list(range(N_FRAMES)) and not summary["errors"]
     est = [r["diagnostics"]["estimated_frame"] for r in records]
     assert est[0] == 0 and all(e <= r["frame"] for e, r in zip(est, records)) and est == sorted(est), est
     assert all(np.isfinite(r["sh"]).all() for r in records)
     np.testing.assert_allclose(records[0]["sh"], direct_lighting(recording)[0], atol=2e-7)
+
+    def left() -> list:   # the connection's worker thread and solve process (lighting.solve_process)
+        return ([t for t in threading.enumerate() if t.name.startswith("photoreg-lighting")]
+                + list(set(multiprocessing.active_children()) - before))
+
+    deadline = time.monotonic() + 30
+    while left() and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert not left()
 
 
 def test_streamed_composites_equal_the_direct_pipeline_s(tmp_path):

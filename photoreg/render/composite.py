@@ -113,11 +113,10 @@ def box_distance2(maps: SurfaceMaps, bounds: np.ndarray) -> np.ndarray:
     return np.einsum("...i,...i->...", gap, gap)
 
 
-def near_objects(maps: SurfaceMaps, bounds: np.ndarray, reach: float, distance2: np.ndarray | None = None) -> np.ndarray:
-    """Stride pixels whose real surface lies within `reach` of the objects' box: the only ones a
-    virtual object can shadow (rays end at ray_length). `distance2`: box_distance2 of the same maps, when known."""
-    d2 = box_distance2(maps, bounds) if distance2 is None else distance2
-    return maps.valid & (d2 <= np.float32(reach) ** 2)
+def near_objects(maps: SurfaceMaps, distance2: np.ndarray, reach: float) -> np.ndarray:
+    """Stride pixels whose real surface lies within `reach` of the objects' box (`distance2`: box_distance2 of the
+    maps): with reach = ray_length, the only ones a virtual object can shadow."""
+    return maps.valid & (distance2 <= np.float32(reach) ** 2)
 
 
 def stride_box(near: np.ndarray, stride: int, shape: tuple[int, int]) -> tuple[int, int, int, int] | None:

@@ -18,7 +18,7 @@ import os
 import numpy as np
 
 from photoreg.lighting.parametric import receiver_opacity
-from photoreg.render.composite import Layers, RenderInput, near_objects, refine_seam, upsample_ratio
+from photoreg.render.composite import Layers, RenderInput, box_distance2, near_objects, refine_seam, upsample_ratio
 from photoreg.render.neural_soft_weights import NeuralSoftSettings, find_weights, load_weights, weights_key
 from photoreg.render.scene import VirtualObject
 from photoreg.render.shadow_mlp import ShadowMLP, predict
@@ -83,7 +83,7 @@ def render_neural_soft(inp: RenderInput) -> Layers:
     light = inp.light
     maps = inp.maps
     extent = float((inp.bounds[1] - inp.bounds[0]).max())
-    near = near_objects(maps, inp.bounds, PLANE_SIDE * extent)
+    near = near_objects(maps, box_distance2(maps, inp.bounds), PLANE_SIDE * extent)
     notes = list(light.notes)
 
     def ratio_at(pts: np.ndarray, normals: np.ndarray) -> np.ndarray:

@@ -95,7 +95,7 @@ def render_voxel(inp: RenderInput) -> Layers:
             notes.append("no directional light in F: SH transfer only")
     cone = None if light is None else cone_directions(light.direction, light.angle, inp.light_rays).astype(np.float32)
     distance2 = box_distance2(maps, inp.bounds)
-    near = near_objects(maps, inp.bounds, inp.ray_length, distance2)
+    near = near_objects(maps, distance2, inp.ray_length)
     l_real = real_radiance(inp, near)
     covered = _covered(inp)
     band = seam_band(inp, near)
@@ -135,7 +135,7 @@ def render_voxel(inp: RenderInput) -> Layers:
     # shadow, not the mean of the whole neighbourhood: re-shade it with that (demo frames 10 and 20 against
     # the path tracer: the object's darkest third 24% -> 14% too bright at frame 10, the whole object at
     # most 10.9% -> 7.6% off per channel; composite si-RMSE, mean of the two frames, 0.071 -> 0.064).
-    close = near_objects(maps, inp.bounds, CLOSE * float(np.max(inp.bounds[1] - inp.bounds[0])), distance2)
+    close = near_objects(maps, distance2, CLOSE * float(np.max(inp.bounds[1] - inp.bounds[0])))
     if close.any():
         l_close = real_radiance(inp, close, ratio_s)
         values = _object_colour(inp, _shading(inp, F, on_object, l_close, l_close)[1], covered)
