@@ -1,10 +1,33 @@
-"""Device selection and Warp start-up (one kernel cache folder, chosen once per process)."""
+"""Device selection, Warp start-up (one kernel cache folder, chosen once per process) and the host allocator."""
 from __future__ import annotations
 
+import ctypes
+import ctypes.util
 import os
 from pathlib import Path
 
 _WARP_READY = False
+_MALLOC_TUNED = False
+# glibc mallopt parameters (malloc.h) and the values set: blocks up to 32 MB (glibc's ceiling for the threshold) come
+# from the heap, and up to 256 MB of freed heap stays in the process
+_M_TRIM_THRESHOLD, _M_TOP_PAD, _M_MMAP_THRESHOLD = -1, -2, -3
+_MALLOC_SETTINGS = ((_M_MMAP_THRESHOLD, 32 << 20), (_M_TRIM_THRESHOLD, 256 << 20), (_M_TOP_PAD, 16 << 20))
+
+
+def keep_frame_memory() -> bool:
+    """Let glibc keep freed frame-sized blocks for the next frame instead of handing them back to the kernel: by
+    default a block above its mmap threshold (128 kB to start) goes back on free, so every frame's new 1-4 MB arrays
+    (linear colour, box filter, depth) fault their pages in afresh. TUM 640x480 on the 2-core CPU, frames that hold
+    the lighting: preprocess 1.7-2.6 -> 0.9-1.0 ms, lighting samples 3.8 -> 3.0 ms. Once per process; False where
+    the C library is not glibc (nothing changed)."""
+    global _MALLOC_TUNED
+    if not _MALLOC_TUNED:
+        try:
+            mallopt = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6").mallopt
+        except (OSError, AttributeError):
+            return False
+        _MALLOC_TUNED = all(mallopt(param, value) == 1 for param, value in _MALLOC_SETTINGS)
+    return _MALLOC_TUNED
 
 
 def warp_cache_dir() -> Path:

@@ -26,7 +26,7 @@ import cv2
 import numpy as np
 
 from .config import Session
-from .device import init_warp, resolve_device
+from .device import init_warp, keep_frame_memory, resolve_device
 from .kernels.raycast import raycast_surface
 from .kernels.transfer import make_direction_set, radiance_transfer, visibility
 from .lighting import sh
@@ -65,6 +65,7 @@ class Pipeline:
         self.intrinsics = intrinsics
         self.device = resolve_device(session.device)
         self._wp = init_warp()
+        keep_frame_memory()
         rc, lc = session.reconstruction, session.lighting
         self.volume = volume if volume is not None else TSDFVolume(
             FusionConfig(voxel_size=rc.voxel_size, trunc_voxels=rc.trunc_voxels, depth_max=rc.depth_max,

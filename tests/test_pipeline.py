@@ -278,3 +278,39 @@ def test_depth_filter_averages_noise_and_keeps_edges_and_holes():
         s.reconstruction.depth_filter_px = bad
         with pytest.raises(ValueError, match="depth_filter_px"):
             validate(s)
+
+
+def test_prepare_masks_and_shares_match_their_definitions():
+    """prepare (cv2 fast paths): depth kept only within [depth_min, depth_max] (NaN, +-inf, negative and far depth
+    become 0), saturated = brightest channel >= saturation_level, black = brightest <= black_level, usable = valid
+    and neither; the shares are of the whole frame. A colour that is not 8-bit RGB is refused naming the frame."""
+    rng = np.random.default_rng(3)
+    color = rng.integers(0, 256, (48, 64, 3), dtype=np.uint8)
+    color[:5] = 255
+    color[5:12, :, :] = rng.integers(0, 4, (7, 64, 3), dtype=np.uint8)
+    depth = rng.uniform(-1.0, 6.0, (48, 64)).astype(np.float32)
+    depth[::7, ::5], depth[1::9, ::4], depth[2::11, 1::3] = np.nan, np.inf, -np.inf
+    k = Intrinsics(64, 48, 60.0, 60.0, 31.5, 23.5, 1000.0)
+    s = Session()
+    lc, rc = s.lighting, s.reconstruction
+    p = prepare(Frame(4, 0.0, color, depth, k, np.eye(4), source="made up"), lc, rc)
+    valid = np.isfinite(depth) & (depth >= rc.depth_min) & (depth <= rc.depth_max)
+    assert 0.2 < valid.mean() < 0.8
+    assert p.depth.dtype == np.float32 and np.array_equal(p.depth, np.where(valid, depth, 0.0).astype(np.float32))
+    peak = color.max(axis=2)
+    saturated, black = peak >= lc.saturation_level, peak <= lc.black_level
+    assert saturated.any() and black.any()
+    assert np.array_equal(p.usable, valid & ~saturated & ~black)
+    assert (p.saturated_fraction, p.black_fraction, p.valid_depth_fraction) == pytest.approx(
+        (saturated.mean(), black.mean(), valid.mean()))
+    assert np.array_equal(p.linear, srgb_to_linear(color))
+    with pytest.raises(ValueError, match=r"frame 4 \(made up\): colour is float32"):
+        prepare(Frame(4, 0.0, color.astype(np.float32) / 255, depth, k, np.eye(4), source="made up"), lc, rc)
+
+
+@pytest.mark.skipif(__import__("platform").libc_ver()[0] != "glibc", reason="mallopt is glibc's")
+def test_keep_frame_memory_takes_on_glibc():
+    """photoreg.device.keep_frame_memory: glibc accepts every mallopt setting (a refused one returns False)."""
+    from photoreg.device import keep_frame_memory
+
+    assert keep_frame_memory() is True

@@ -23,21 +23,20 @@ def depth_normals(depth: np.ndarray, intr: Intrinsics, rows: np.ndarray, cols: n
     of one shape), facing the camera; zero where a neighbour `step` pixels away is missing or off the image."""
     h, w = depth.shape
     r, c = np.asarray(rows), np.asarray(cols)
-
-    def point(rr, cc):
-        inside = (rr >= 0) & (rr < h) & (cc >= 0) & (cc < w)
-        z = np.where(inside, depth[np.clip(rr, 0, h - 1), np.clip(cc, 0, w - 1)], 0.0)
-        z = np.where(np.isfinite(z), z, 0.0)
-        p = np.stack([(cc - intr.cx) / intr.fx * z, (rr - intr.cy) / intr.fy * z, z], axis=-1)
-        return p, z > 0
-
-    (px1, ok1), (px0, ok0) = point(r, c + step), point(r, c - step)
-    (py1, ok2), (py0, ok3) = point(r + step, c), point(r - step, c)
-    n = np.cross(px1 - px0, py1 - py0)
-    norm = np.linalg.norm(n, axis=-1, keepdims=True)
-    ok = ok0 & ok1 & ok2 & ok3 & (norm[..., 0] > 0)
-    n = np.where(ok[..., None], n / np.maximum(norm, 1e-30), 0.0)
-    return -n  # x-right, y-down cross product points away from the camera; flip to face it
+    # the four neighbours (right, left, below, above) gathered at once: 2x faster than one by one
+    rr = np.stack([r, r, r + step, r - step])
+    cc = np.stack([c + step, c - step, c, c])
+    inside = (rr >= 0) & (rr < h) & (cc >= 0) & (cc < w)
+    z = np.where(inside, depth[np.clip(rr, 0, h - 1), np.clip(cc, 0, w - 1)], 0.0)
+    z = np.where(np.isfinite(z), z, 0.0)
+    x, y = (cc - intr.cx) / intr.fx * z, (rr - intr.cy) / intr.fy * z
+    ax, ay, az = x[0] - x[1], y[0] - y[1], z[0] - z[1]   # along the row
+    bx, by, bz = x[2] - x[3], y[2] - y[3], z[2] - z[3]   # along the column
+    # their cross product, negated: x-right, y-down a x b points away from the camera; flipped to face it
+    n = np.stack([az * by - ay * bz, ax * bz - az * bx, ay * bx - ax * by], axis=-1)
+    norm = np.sqrt(np.einsum("...i,...i->...", n, n))[..., None]
+    ok = (z > 0).all(axis=0) & (norm[..., 0] > 0)
+    return np.where(ok[..., None], n / np.maximum(norm, 1e-30), 0.0)
 
 
 def agreement(depth: np.ndarray, intr: Intrinsics, pose: np.ndarray, rows: np.ndarray, cols: np.ndarray,

@@ -19,6 +19,7 @@ import numpy as np
 from photoreg.device import init_warp, open3d_device
 from photoreg.io.poses import check_pose
 from photoreg.kernels.grid import SDF_DTYPE, DenseGrid, copy_into, scatter_blocks, update_empty_distance
+from photoreg.preprocess import masked_depth
 from photoreg.types import Intrinsics
 
 wp = init_warp()
@@ -106,7 +107,7 @@ class TSDFVolume:
         # point by half a pixel makes that the nearest pixel (OpenCV: pixel centres at integers).
         K_nearest = K + self._o3d.core.Tensor(np.array([[0.0, 0.0, 0.5], [0.0, 0.0, 0.5], [0.0, 0.0, 0.0]]))
         cfg = self.cfg
-        depth = np.where(np.isfinite(depth) & (depth >= cfg.depth_min), depth, 0.0).astype(np.float32)
+        depth = masked_depth(depth, cfg.depth_min)[0]
         if not np.any((depth > 0) & (depth < cfg.depth_max)):
             return  # nothing to fuse (Open3D would raise)
         depth_img = o3d.t.geometry.Image(self._tensor(depth))
