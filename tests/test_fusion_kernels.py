@@ -390,3 +390,22 @@ def test_relaunch_is_identical_and_uses_the_loaded_kernels(room):
     assert cache.is_relative_to(warp_cache_dir())
     for m in modules:
         assert all((cache / m.get_module_identifier(block_dim)).is_dir() for _, block_dim in m.execs)
+
+
+def test_empty_space_distance_on_random_occupancy():
+    """update_empty_distance (three separable passes) equals scipy's chessboard distance,
+    capped at EMPTY_CAP, on random bricks from empty to full, odd shapes included."""
+    from scipy.ndimage import distance_transform_cdt
+
+    from photoreg.kernels.grid import EMPTY_CAP, update_empty_distance
+
+    rng = np.random.default_rng(1)
+    for trial, density in enumerate([0.0, 1.0, 0.001, 0.01, 0.1, 0.5] * 3):
+        shape = tuple(int(x) for x in rng.integers(1, 25, 3))
+        occupied = rng.random(shape) < density
+        occ = wp.array(occupied.astype(np.uint8) * (trial + 1), dtype=wp.uint8, device="cpu")
+        empty = wp.empty_like(occ)
+        update_empty_distance(occ, empty)
+        expected = (np.minimum(distance_transform_cdt(~occupied, metric="chessboard"), EMPTY_CAP) if occupied.any()
+                    else np.full(shape, EMPTY_CAP))
+        np.testing.assert_array_equal(empty.numpy(), expected, err_msg=f"shape {shape}, density {density}")

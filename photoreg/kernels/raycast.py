@@ -179,9 +179,10 @@ def raycast_surface(grid: DenseGrid, intr: Intrinsics, pose_c2w: np.ndarray, dep
                          f"{normal_smoothing})")
     intr.check("raycast_surface")
     h, w = -(-intr.height // stride), -(-intr.width // stride)
-    depth = wp.zeros((h, w), dtype=wp.float32, device=device)
-    vertex = wp.zeros((h, w), dtype=wp.vec3, device=device)
-    normal = wp.zeros((h, w), dtype=wp.vec3, device=device)
+    # not cleared: the kernel writes every pixel (zeros where no surface is found)
+    depth = wp.empty((h, w), dtype=wp.float32, device=device)
+    vertex = wp.empty((h, w), dtype=wp.vec3, device=device)
+    normal = wp.empty((h, w), dtype=wp.vec3, device=device)
     launch_rows(_raycast, (h, w), device=device, threads=threads,
                 inputs=[grid.sdf, grid.empty, int(grid.cell), wp.vec3(*grid.origin), float(grid.voxel_size),
                         float(grid.trunc),
