@@ -51,7 +51,14 @@ def _solve_process() -> futures.ProcessPoolExecutor:
     """A child process for the asynchronous worker's robust solves (lighting.solve_process), spawned (a fork would
     copy the CUDA context) and its imports done now, so the first estimate does not wait for them."""
     pool = futures.ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn"))
-    pool.submit(exec, "import photoreg.lighting.robust").result()
+    try:
+        pool.submit(exec, "import photoreg.lighting.robust").result()
+    except futures.BrokenExecutor as e:   # the child died starting (its own traceback is on stderr)
+        pool.shutdown(wait=False, cancel_futures=True)
+        raise RuntimeError(
+            "the lighting's solve process (lighting.solve_process) could not start. A spawned child imports the "
+            "main script again: a script that builds a Pipeline or runs a session at import needs "
+            "`if __name__ == \"__main__\":` round that code; or set lighting.solve_process = false") from e
     return pool
 
 

@@ -314,3 +314,34 @@ def test_keep_frame_memory_takes_on_glibc():
     from photoreg.device import keep_frame_memory
 
     assert keep_frame_memory() is True
+
+
+def test_solve_process_without_main_guard_is_a_clear_error(tmp_path):
+    """lighting.solve_process spawns a child that imports the main script again: a script that builds an asynchronous
+    Pipeline at import gets an error saying so (not a bare BrokenProcessPool); the same script under a main guard
+    runs."""
+    import subprocess
+    import sys
+    import textwrap
+
+    body = textwrap.dedent("""
+        from photoreg.config import Session, validate
+        from photoreg.pipeline import Pipeline
+        from photoreg.types import Intrinsics
+        def build():
+            s = Session()
+            s.device = "cpu"
+            s.lighting.asynchronous = True
+            validate(s)
+            Pipeline(s, Intrinsics(64, 48, 60.0, 60.0, 31.5, 23.5)).close()
+            print("pipeline ready")
+        """)
+    runs = {}
+    for name, tail in (("bare", "build()\n"), ("guarded", 'if __name__ == "__main__":\n    build()\n')):
+        script = tmp_path / f"{name}.py"
+        script.write_text(body + tail)
+        runs[name] = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=300,
+                                    cwd=tmp_path)
+    assert runs["bare"].returncode != 0 and "pipeline ready" not in runs["bare"].stdout
+    assert 'if __name__ == "__main__":' in runs["bare"].stderr and "solve_process = false" in runs["bare"].stderr
+    assert runs["guarded"].returncode == 0 and "pipeline ready" in runs["guarded"].stdout, runs["guarded"].stderr
