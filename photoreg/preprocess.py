@@ -23,6 +23,19 @@ class Prepared:
     valid_depth_fraction: float
 
 
+def strided_box(prep: Prepared, stride: int) -> tuple[np.ndarray, np.ndarray]:
+    """(radiance, usable) at the pixels (r * stride, c * stride): the linear radiance averaged over an odd box
+    (stride | 1) centred on the pixel (less noise at no extra cost), and whether the whole box is usable; at stride 1
+    the pixel's own."""
+    if stride == 1:
+        return prep.linear, prep.usable
+    k = (stride | 1, stride | 1)
+    radiance = cv2.boxFilter(prep.linear, -1, k, borderType=cv2.BORDER_REFLECT)[::stride, ::stride]
+    # the whole box usable: an erosion (0.2 ms at 640x480 against 0.5 for a box filter of the mask)
+    usable = cv2.erode(prep.usable.view(np.uint8), np.ones(k, np.uint8), borderType=cv2.BORDER_REFLECT)
+    return radiance, usable[::stride, ::stride] > 0
+
+
 def _denoise_luminance(linear: np.ndarray, method: str) -> np.ndarray:
     """Edge-preserving denoising of luminance only; chromaticity is kept."""
     if method == "none":   # before the luminance: 1-2 ms a frame at 640x480 for nothing

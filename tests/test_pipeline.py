@@ -16,7 +16,7 @@ from photoreg.cli import main
 from photoreg.config import LightingConfig, Session, load_session, validate
 from photoreg.io.images import linear_to_srgb, srgb_to_linear
 from photoreg.io.recording import iter_frames, open_recording
-from photoreg.preprocess import prepare
+from photoreg.preprocess import prepare, strided_box
 from photoreg.recon.tracking import ate_rmse
 from photoreg.runner import run_session
 from photoreg.types import Frame, Intrinsics
@@ -345,3 +345,27 @@ def test_solve_process_without_main_guard_is_a_clear_error(tmp_path):
     assert runs["bare"].returncode != 0 and "pipeline ready" not in runs["bare"].stdout
     assert 'if __name__ == "__main__":' in runs["bare"].stderr and "solve_process = false" in runs["bare"].stderr
     assert runs["guarded"].returncode == 0 and "pipeline ready" in runs["guarded"].stdout, runs["guarded"].stderr
+
+
+def test_strided_box_is_the_centred_box_mean():
+    """strided_box(prep, st): at pixel (r*st, c*st) the mean linear radiance of the (st|1)^2 box centred there (image
+    edges reflected) and whether the whole box is usable; stride 1 is the frame itself."""
+    rng = np.random.default_rng(5)
+    color = rng.integers(10, 240, (30, 41, 3), dtype=np.uint8)
+    color[7, 9] = 255   # saturated: every box holding it is unusable
+    depth = np.full((30, 41), 1.5, np.float32)
+    k = Intrinsics(41, 30, 40.0, 40.0, 20.0, 14.5, 1000.0)
+    s = Session()
+    prep = prepare(Frame(0, 0.0, color, depth, k, np.eye(4)), s.lighting, s.reconstruction)
+    radiance, usable = strided_box(prep, 4)
+    assert radiance.shape == (8, 11, 3) and usable.shape == (8, 11)
+    padded = np.pad(prep.linear, ((2, 2), (2, 2), (0, 0)), mode="symmetric")   # numpy's symmetric = cv2's REFLECT
+    for r, c in [(0, 0), (1, 2), (3, 5), (7, 10)]:
+        box = padded[4 * r:4 * r + 5, 4 * c:4 * c + 5]
+        np.testing.assert_allclose(radiance[r, c], box.reshape(-1, 3).mean(axis=0), rtol=1e-5)
+    bad = np.pad(~prep.usable, 2, mode="symmetric")
+    expected = np.array([[not bad[4 * r:4 * r + 5, 4 * c:4 * c + 5].any() for c in range(11)] for r in range(8)])
+    np.testing.assert_array_equal(usable, expected)
+    assert not usable[2, 2] and usable.sum() > 80
+    full_radiance, full_usable = strided_box(prep, 1)
+    assert full_radiance is prep.linear and full_usable is prep.usable
