@@ -60,7 +60,8 @@ def filter_depth(depth: np.ndarray, valid: np.ndarray, window: int, sigma_m: flo
     return np.where(valid, cv2.bilateralFilter(depth, window, sigma_m, window // 2), np.float32(0.0))
 
 
-def masked_depth(depth: np.ndarray, lo: float, hi: float = float(np.finfo(np.float32).max)) -> tuple[np.ndarray, np.ndarray]:
+def masked_depth(depth: np.ndarray, lo: float,
+                 hi: float = float(np.finfo(np.float32).max)) -> tuple[np.ndarray, np.ndarray]:
     """(float32 copy of `depth` with 0 wherever it is not within [lo, hi], NaN and +-inf included; the bool mask of
     the pixels kept). The zeros by cv2.bitwise_and under the mask: 0.2 ms at 640x480 against 1.2 for a boolean
     assignment and 0.8 for np.where."""

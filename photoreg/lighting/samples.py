@@ -23,7 +23,7 @@ def depth_normals(depth: np.ndarray, intr: Intrinsics, rows: np.ndarray, cols: n
     of one shape), facing the camera; zero where a neighbour `step` pixels away is missing or off the image."""
     h, w = depth.shape
     r, c = np.asarray(rows), np.asarray(cols)
-    # the four neighbours (right, left, below, above) gathered at once: 2x faster than one by one
+    # the four neighbours (right, left, below, above) gathered at once: 1.7x faster than one by one
     rr = np.stack([r, r, r + step, r - step])
     cc = np.stack([c + step, c - step, c, c])
     inside = (rr >= 0) & (rr < h) & (cc >= 0) & (cc < w)
