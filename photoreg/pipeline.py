@@ -74,8 +74,8 @@ class Pipeline:
         keep_frame_memory()
         rc, lc = session.reconstruction, session.lighting
         self.volume = volume if volume is not None else TSDFVolume(
-            FusionConfig(voxel_size=rc.voxel_size, trunc_voxels=rc.trunc_voxels, depth_max=rc.depth_max,
-                         block_count=rc.block_count), self.device)
+            FusionConfig(voxel_size=rc.voxel_size, trunc_voxels=rc.trunc_voxels, depth_min=rc.depth_min,
+                         depth_max=rc.depth_max, block_count=rc.block_count), self.device)
         self.solver_cfg = SolverConfig.from_lighting(lc)
         self.dirs, self.Y = make_direction_set(lc.rays, self.solver_cfg.fit_bands, seed=0)
         self.filter = (LightingFilter(self.solver_cfg.fit_bands,

@@ -369,3 +369,19 @@ def test_strided_box_is_the_centred_box_mean():
     assert not usable[2, 2] and usable.sum() > 80
     full_radiance, full_usable = strided_box(prep, 1)
     assert full_radiance is prep.linear and full_usable is prep.usable
+
+
+def test_fusion_takes_the_sessions_depth_range():
+    """reconstruction.depth_min reaches the fusion volume: a wall 8 cm from the camera, inside a depth_min of 5 cm
+    (below the fusion's own default of 10 cm), is fused and ray cast (before, the fusion dropped it: nothing fused)."""
+    k = Intrinsics(64, 48, 60.0, 60.0, 31.5, 23.5, 1000.0)
+    s = Session()
+    s.device = "cpu"
+    s.reconstruction.depth_min = 0.05
+    validate(s)
+    pipe = pipeline_module.Pipeline(s, k)
+    frame = Frame(0, 0.0, np.full((48, 64, 3), 128, np.uint8), np.full((48, 64), 0.08, np.float32), k, np.eye(4))
+    prep, pose, _ = pipe.observe(frame, {})
+    assert pipe.volume.cfg.depth_min == 0.05 and pipe.volume.frames_integrated == 1
+    maps = pipeline_module.raycast_surface(pipe.volume.dense_grid(), k, pose, 0.05, 4.0)
+    assert maps.valid.mean() > 0.5
