@@ -375,7 +375,10 @@ class Pipeline:
             pose, notes = self._pose(frame, prep)
         if pose is not None:
             with self._timed(t, "fuse"):
-                self.volume.integrate(prep.depth, self.intrinsics, pose)
+                # prepare zeroed the depth below rc.depth_min: clean for a volume that drops no more (a shared one
+                # may), unless the bilateral filter (which may dip just below it) ran
+                self.volume.integrate(prep.depth, self.intrinsics, pose,
+                                      clean=rc.depth_min >= self.volume.cfg.depth_min and not rc.depth_filter_px)
         return prep, pose, list(notes)
 
     def estimate(self, frame: Frame, prep: Prepared, pose: np.ndarray | None, notes: list[str],

@@ -409,3 +409,29 @@ def test_empty_space_distance_on_random_occupancy():
         expected = (np.minimum(distance_transform_cdt(~occupied, metric="chessboard"), EMPTY_CAP) if occupied.any()
                     else np.full(shape, EMPTY_CAP))
         np.testing.assert_array_equal(empty.numpy(), expected, err_msg=f"shape {shape}, density {density}")
+
+
+def test_clean_depth_is_fused_as_the_raw_depth_would_be():
+    """integrate(..., clean=True) skips the masking the pipeline's prepare already did: the depth of prepare (holes,
+    NaN, +-inf, depth nearer than depth_min in the raw frame) fuses into the same brick as the raw depth masked by
+    integrate itself."""
+    from photoreg.config import Session
+    from photoreg.preprocess import prepare
+    from photoreg.types import Frame
+
+    scene, poses = box_room(), room_poses(3)
+    rng = np.random.default_rng(2)
+    vols = [TSDFVolume(FusionConfig(voxel_size=VOXEL, block_resolution=16), "cpu") for _ in range(2)]
+    s = Session()
+    for pose in poses:
+        depth, _ = scene.render_depth(K160, pose)
+        spoilt = rng.random(depth.shape)
+        depth[spoilt < 0.05], depth[spoilt > 0.97] = np.nan, np.inf
+        depth[(spoilt > 0.5) & (spoilt < 0.52)] = 0.05   # nearer than depth_min (0.1)
+        prep = prepare(Frame(0, 0.0, np.full((K160.height, K160.width, 3), 128, np.uint8), depth, K160, pose),
+                       s.lighting, s.reconstruction)
+        assert s.reconstruction.depth_min == vols[0].cfg.depth_min
+        vols[0].integrate(prep.depth, K160, pose, clean=True)
+        vols[1].integrate(depth, K160, pose)
+    a, b = (v.dense_grid().sdf.numpy() for v in vols)
+    assert (a < vols[0].cfg.trunc).mean() > 0.01 and np.array_equal(a, b)

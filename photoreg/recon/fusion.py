@@ -95,9 +95,11 @@ class TSDFVolume:
         pose = check_pose(pose_c2w, where)
         return self._o3d.core.Tensor(intr.K), self._o3d.core.Tensor(np.linalg.inv(pose)), pose
 
-    def integrate(self, depth: np.ndarray, intr: Intrinsics, pose_c2w: np.ndarray) -> None:
+    def integrate(self, depth: np.ndarray, intr: Intrinsics, pose_c2w: np.ndarray, clean: bool = False) -> None:
         """Fuse one frame: depth HxW metres (0/NaN invalid; outside [depth_min, depth_max] ignored), pose
-        camera-to-world."""
+        camera-to-world. clean: the depth is finite with 0 wherever it is below depth_min (preprocess.prepare's,
+        with a depth_min of at least this volume's), so it is not masked again (0.4-0.5 ms a 640x480 frame on the
+        H100's host)."""
         o3d = self._o3d
         depth = np.asarray(depth, dtype=np.float32)
         if depth.shape != (intr.height, intr.width):
@@ -107,7 +109,8 @@ class TSDFVolume:
         # point by half a pixel makes that the nearest pixel (OpenCV: pixel centres at integers).
         K_nearest = K + self._o3d.core.Tensor(np.array([[0.0, 0.0, 0.5], [0.0, 0.0, 0.5], [0.0, 0.0, 0.0]]))
         cfg = self.cfg
-        depth = masked_depth(depth, cfg.depth_min)[0]
+        if not clean:
+            depth = masked_depth(depth, cfg.depth_min)[0]
         if not np.any((depth > 0) & (depth < cfg.depth_max)):
             return  # nothing to fuse (Open3D would raise)
         depth_img = o3d.t.geometry.Image(self._tensor(depth))
