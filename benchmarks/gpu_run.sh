@@ -44,7 +44,8 @@
 #              (OUTDIR/held.json)
 #   ab         this tree against the package in $OLD (an earlier commit: `git archive COMMIT photoreg | tar -x -C OLD`),
 #              `photoreg bench speed $AB_FLAGS` alternating, AB_ROUNDS (default "1 2") rounds: RECORDING at stride 4 /
-#              64 rays / 3 bands and stride 1 / 169 / 4, the bunny (sessions/tum_fr1_rpy.toml) (OUTDIR/ab.json)
+#              64 rays / 3 bands and stride 1 / 169 / 4, the bunny (sessions/tum_fr1_rpy.toml) (OUTDIR/ab.json); AB_RUNS
+#              (comma-separated "KIND STRIDE RAYS BANDS", KIND bare, bunny or demo) picks other settings
 #   sweep      `photoreg bench sweep --device cuda` on SWEEP_SCENES (recordings with lighting_gt.json
 #              made here with `photoreg synth`); VOXELS (default 0.01,0.02) restricts it to fit one call
 set -euo pipefail
@@ -197,8 +198,9 @@ for step in "$@"; do
       merge /tmp/bounce "$out/bounce.json" ;;
     ab)
       mkdir -p /tmp/ab
+      IFS=, read -r -a runs <<< "${AB_RUNS:-bare 4 64 3,bare 1 169 4,bunny 4 64 3}"
       for round in ${AB_ROUNDS:-1 2}; do
-        for run in "bare 4 64 3" "bare 1 169 4" "bunny 4 64 3"; do
+        for run in "${runs[@]}"; do
           read -r kind stride rays bands <<< "$run"
           src=$(realpath "$(input_of $kind)")
           for code in old new; do   # the old package first on the path, run from elsewhere (not this tree's)

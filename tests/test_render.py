@@ -476,3 +476,29 @@ def test_voxel_traces_the_dominant_light_as_a_disc(tmp_path):
     opacity = float(parametric_light(F, sun).opacity.mean())
     umbra = 1.0 - opacity                                          # 0.105 for this light
     assert abs(mins[16] - umbra) < 0.06 and mins[0] - umbra > 0.15, (mins, umbra)   # measured 0.154 / 0.318
+
+
+def test_frames_holding_one_estimate_share_its_light():
+    """RenderInput.light is fitted once per estimate: frames that hold the same F (and traced light) get the same
+    ParametricLight, equal to a fit of their own; another F or another traced light gets its own."""
+    from photoreg.lighting.parametric import parametric_light, traced_light
+
+    F = np.zeros((3, 9))
+    F[:, 0], F[:, 3] = [2.0, 1.8, 1.5], [0.9, 0.8, 0.7]   # ambient plus a lobe along +x (band 1: y, z, x)
+
+    def light(F, sun=None):
+        return RenderInput(None, F, 1.0, *([None] * 8), sun=sun).light
+
+    held = light(F.copy())
+    assert light(F.copy()) is held
+    fresh = parametric_light(F, sh.dominant_direction(F))
+    np.testing.assert_array_equal(held.residual, fresh.residual)
+    assert held.direction @ fresh.direction == pytest.approx(1.0) and held.lobe_share > 0
+    other = F.copy()
+    other[:, 3] *= 0.5
+    assert light(other) is not held and (light(other).colour < held.colour).all()
+    sun = {"direction": [1.0, 0.0, 0.0], "irradiance": [0.5, 0.4, 0.3], "angle": 0.05}
+    traced = light(F.copy(), sun)
+    assert traced is not held and traced is light(F.copy(), dict(sun))
+    np.testing.assert_array_equal(traced.residual, traced_light(F, np.array(sun["direction"]),
+                                                                np.array(sun["irradiance"]), 0.05).residual)

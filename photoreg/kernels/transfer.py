@@ -301,30 +301,35 @@ def any_blocked(grid: DenseGrid, points, normals, dirs, offset: float, ray_lengt
 def radiance_transfer(grid: DenseGrid, points, normals, dirs, ytable, offset: float, ray_length: float,
                       device: str | None = None, min_step_voxels: float = 0.5,
                       virtual: DenseGrid | None = None, threads: int | None = None,
-                      hit_distances: bool = False) -> TransferResult:
+                      hit_distances: bool = False, extra: int = 0, scale: float | None = None) -> TransferResult:
     """R_TR and visible fraction at world points (N, 3) with unit world normals (N, 3; zero = skip),
     numpy or Warp (vec3, any shape: flattened), over the direction set from make_direction_set.
     With `virtual` (the virtual objects' SDF grid) the same ray pass also gives R_TRV (transfer_rv); with
     `hit_distances` the distance along each ray from points + normals * offset to the real surface that
     blocks it (hit_distance_wp; observed_bounce reads it). On the CPU the launches are split over `threads`
-    threads (photoreg.kernels.launch)."""
+    threads (photoreg.kernels.launch). `extra`: ytable's last columns that are not SH, projected the same way
+    (another ray set's functions, zero on the others' rows: one pass for several sets); `scale`: each direction's
+    quadrature weight over pi (default 4 / D, D equal areas)."""
     device, p, n, w = _checked_rays(grid, points, normals, dirs, offset, ray_length, device, min_step_voxels, virtual)
     y = _as_warp(ytable, wp.float32, device, "ytable", None)
     if y.shape[0] != w.shape[0]:
         raise ValueError(f"ytable has {y.shape[0]} rows for {w.shape[0]} directions")
-    bands_of(y.shape[1])
+    if not 0 <= extra < y.shape[1]:
+        raise ValueError(f"radiance_transfer: extra = {extra} of ytable's {y.shape[1]} columns")
+    bands_of(y.shape[1] - extra)
     N, D, K = p.shape[0], w.shape[0], y.shape[1]
+    scale = 4.0 / D if scale is None else float(scale)
     hits = wp.empty((N, D), dtype=wp.float32, device=device) if hit_distances else None  # every ray writes
     occ = _occlusion_pass(grid, p, n, w, offset, ray_length, device, min_step_voxels, virtual, threads, hits)
     transfer = wp.zeros((N, K), dtype=wp.float32, device=device)
     visible = wp.zeros(N, dtype=wp.float32, device=device)
     transfer_rv = visible_rv = None
-    launch_rows(_project, (N, K), device=device, threads=threads, inputs=[n, w, y, occ, REAL, 4.0 / D],
+    launch_rows(_project, (N, K), device=device, threads=threads, inputs=[n, w, y, occ, REAL, scale],
                 outputs=[transfer, visible])
     if virtual is not None:
         trv = wp.zeros((N, K), dtype=wp.float32, device=device)
         vrv = wp.zeros(N, dtype=wp.float32, device=device)
-        launch_rows(_project, (N, K), device=device, threads=threads, inputs=[n, w, y, occ, REAL | VIRTUAL, 4.0 / D],
+        launch_rows(_project, (N, K), device=device, threads=threads, inputs=[n, w, y, occ, REAL | VIRTUAL, scale],
                     outputs=[trv, vrv])
         transfer_rv, visible_rv = trv.numpy(), vrv.numpy()
     return TransferResult(transfer=transfer.numpy(), visible_fraction=visible.numpy(), transfer_wp=transfer,

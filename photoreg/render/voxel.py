@@ -42,26 +42,26 @@ def real_radiance(inp: RenderInput, near: np.ndarray, ratio: np.ndarray | None =
     return (radiance if ratio is None else radiance * ratio)[near].mean(axis=0)
 
 
-def _disc_shading(inp: RenderInput, light: ParametricLight | None, cone: np.ndarray | None, points: np.ndarray,
-                  normals: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Camera-unit shading (no albedo) by the light's disc (`cone`: its rays), gain * c/pi * mean over its rays
-    of V max(n.w, 0), under real and under real + virtual occlusion: (N, 3) each (zeros without a light)."""
-    if light is None or len(points) == 0:
-        zero = np.zeros((len(points), 3), np.float32)
-        return zero, zero
-    t = radiance_transfer(inp.grid, points, normals, cone, np.ones((len(cone), 1), np.float32), inp.offset,
-                          inp.ray_length, virtual=inp.virtual)
-    k = inp.gain * light.colour / np.pi / 4.0   # transfer = (4 / D) sum_visible cos
-    return t.transfer[:, :1] * k, t.transfer_rv[:, :1] * k
-
-
-def _transfers(inp: RenderInput, F: np.ndarray, light, cone, points, normals):
-    """The ray pass at points: the SH transfer R_TR, R_TRV and the disc light's shading under each (composite
-    units), four arrays of one row per point (every point's rays are its own: a pass over several point sets
-    at once gives each set what its own pass would)."""
+def _transfers(inp: RenderInput, F: np.ndarray, light: ParametricLight | None, cone: np.ndarray | None,
+               points: np.ndarray, normals: np.ndarray):
+    """The ray pass at points: the SH transfer R_TR, R_TRV and the shading by the light's disc (`cone`: its rays)
+    under each, gain * c/pi * mean over the disc's rays of V max(n.w, 0) (composite units, zero without a light):
+    four arrays of one row per point (every point's rays are its own: a pass over several point sets at once gives
+    each set what its own pass would). The disc's rays join the SH set's in one pass, one column more: 1 on the
+    disc's rows, weighted D / len(cone) so that the pass's 4 / D gives the disc's own 4 / len(cone)."""
     dirs, Y = inp.directions(sh.bands_of(F.shape[1]))
-    t = radiance_transfer(inp.grid, points, normals, dirs, Y, inp.offset, inp.ray_length, virtual=inp.virtual)
-    return (t.transfer, t.transfer_rv, *_disc_shading(inp, light, cone, points, normals))
+    D, K = Y.shape
+    if light is not None:
+        Y = np.block([[Y, np.zeros((D, 1), np.float32)],
+                      [np.zeros((len(cone), K), np.float32), np.full((len(cone), 1), D / len(cone), np.float32)]])
+        dirs = np.concatenate([dirs, cone])
+    t = radiance_transfer(inp.grid, points, normals, dirs, Y, inp.offset, inp.ray_length, virtual=inp.virtual,
+                          extra=Y.shape[1] - K, scale=4.0 / D)
+    if light is None:
+        zero = np.zeros((len(points), 3), np.float32)
+        return t.transfer, t.transfer_rv, zero, zero
+    k = inp.gain * light.colour / np.pi / 4.0   # the disc's column = (4 / len(cone)) sum_visible cos
+    return t.transfer[:, :K], t.transfer_rv[:, :K], t.transfer[:, K:] * k, t.transfer_rv[:, K:] * k
 
 
 def _shading(inp: RenderInput, F: np.ndarray, passes, l_real, l_virt):
