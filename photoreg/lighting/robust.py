@@ -147,6 +147,10 @@ class Solution:
     weights: np.ndarray | None = None           # ... and final weights (normal x robust), for the sun search
     current_system: NormalEquations | None = None  # `system` over the current view's rows alone (solve's `current`)
     setup: "_Setup | None" = None               # what a later solve on the same samples reuses (solve's `start`)
+    # where the band-0 fallback replaced the fit in `lighting`: the regularised fit of every band that `system`
+    # describes (the temporal filter fuses it once it holds an estimate: the fallback's band 0 alone disagrees
+    # with the data wherever they resolve more than the plane's irradiance)
+    measured: np.ndarray | None = None
 
 
 @dataclass
@@ -702,8 +706,11 @@ def solve(radiance, transfer, normals, visible, cfg: SolverConfig, prior=None, m
     n_fit = int((w > 0).sum())
     rank, cond, too_few = conditioning(np.sqrt(ev), n_fit, k, cfg, notes)
     fallback = prior is None and k > 1 and (n_fit < k or dof < MIN_DOF)
+    measured = None
     if fallback:
-        notes.append("band-0-only fallback")
+        notes.append(f"band-0-only fallback ({dof:.1f} resolved combinations; a temporal filter that holds an "
+                     "estimate fuses what the frame resolves instead)")
+        measured = _as_sh(F, tsh) if np.isfinite(F).all() else None
         F0, _ = _solve_channels(G[:, :1, :1], g[:, :1], lam_rel, prior_b[:, :1])
         F = np.zeros((3, k + p))
         F[:, :1] = F0
@@ -751,4 +758,4 @@ def solve(radiance, transfer, normals, visible, cfg: SolverConfig, prior=None, m
         current_system = NormalEquations(G_c[:, :k, :k], g_c[:, :k], c0_c, lams, sigma2, int((w_cur > 0).sum()))
     return Solution(Lighting(_as_sh(F, tsh)), diag, system, rho,
                     terms={t.name: F[:, k + j].copy() for j, t in enumerate(terms)}, samples=idx, labels=labels,
-                    weights=w, setup=setup, current_system=current_system)
+                    weights=w, setup=setup, current_system=current_system, measured=measured)

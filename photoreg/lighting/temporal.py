@@ -11,7 +11,10 @@ State: F (3, K) at the filter's band count, per channel a precision matrix (K, K
             orbit: median direction error 12.6 -> 9.5 degrees at 0.3, benchmarks/lighting_accuracy.md);
   measure   the frame's solve (photoreg.lighting.robust.solve, regularised toward the prediction)
             gives z and its precision J = (G + lam I) / sigma^2 at the frame's band count; bands the
-            frame did not fit get no information, so they keep the prediction;
+            frame did not fit get no information, so they keep the prediction; where the solve fell back to
+            band 0 (too few resolved combinations), z is the prediction moved by the solve's resolution matrix
+            toward the fit that J describes (Solution.measured), so what the frame does not resolve keeps the
+            prediction;
   detect    ratio = SSE(prediction) / SSE(z) on the frame's own samples and weights: how much worse
             the predicted lighting explains this frame than its own fit (with a history of samples, on
             the current view's rows alone: Solution.current_system; over all rows two thirds of a switch
@@ -84,6 +87,16 @@ class LightingFilter:
         system = sol.system
         if system is None:  # nothing measured: the estimate stands (or the solve's fallback)
             return (sh.truncate(self.x, sh.bands_of(k_frame)) if self.x is not None else z), False
+        if sol.measured is not None and self.x is not None:
+            # The solve fell back to band 0 (too few resolved combinations), which disagrees with the data wherever
+            # they resolve more than one plane's irradiance (split_albedo with the depth filter and the normal
+            # smoothing: the ambient jumped 2.5x between frames). The filter fuses what the frame resolves of the fit
+            # that `system` describes: the prediction moved by the solve's resolution matrix (G + lam I)^-1 G,
+            # so the directions it does not resolve keep the prediction (not the fallback's nor the fit's prior).
+            k_sys = system.G.shape[1]
+            x_p = _embed(self.x, k_sys)
+            resolution = np.linalg.pinv(system.G + system.lam[:, None, None] * np.eye(k_sys)) @ system.G
+            z = x_p + np.einsum("cij,cj->ci", resolution, _embed(sol.measured, k_sys) - x_p)
         J = _embed(system.precision(), self.k)
         z_full = _embed(z, self.k)
         if self.x is None:
