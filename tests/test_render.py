@@ -230,6 +230,11 @@ def _check_window_gbuffer(stage, real, window) -> None:
         assert same.sum() > 0.9 * (a.coverage > 0).sum()
         for name in ("depth", "position", "normal", "albedo"):
             assert np.allclose(getattr(a, name)[same], getattr(b, name)[same], atol=1e-3), name
+            full, kept = getattr(b, name), getattr(b, "window_" + name)   # the full view: the window's, zero outside
+            outside = full.copy()
+            outside[b.box] = 0
+            assert np.array_equal(full[b.box], kept) and not outside.any(), name
+            assert full.shape[:2] == b.coverage.shape and not full[b.coverage == 0].any(), name
 
 
 def test_render_window_holds_the_object_and_its_seam(tmp_path):

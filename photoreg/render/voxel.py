@@ -22,8 +22,7 @@ def _covered(inp: RenderInput) -> np.ndarray:
 def _object_colour(inp: RenderInput, shading: np.ndarray, covered: np.ndarray) -> np.ndarray:
     """albedo * shading (camera units, no albedo), float32 (N, 3), at the `covered` pixels of the G-buffer's
     window (_covered)."""
-    box = inp.gbuffer.box
-    return (inp.gbuffer.albedo[box][covered] * np.maximum(shading, 0.0)).astype(np.float32)
+    return (inp.gbuffer.window_albedo[covered] * np.maximum(shading, 0.0)).astype(np.float32)
 
 
 def _virtual_colour(inp: RenderInput, values: np.ndarray, covered: np.ndarray) -> np.ndarray:
@@ -113,8 +112,8 @@ def render_voxel(inp: RenderInput) -> Layers:
     hit = np.flatnonzero(any_blocked(inp.virtual, points, normals, rays, inp.offset, inp.ray_length))
     # One ray pass for the object's pixels and the shadowed real points (few launches: each costs host time)
     n_obj = int(covered.sum())
-    passes = _transfers(inp, F, light, cone, np.concatenate([gb.position[gb.box][covered], points[hit]]),
-                        np.concatenate([gb.normal[gb.box][covered], normals[hit]]))
+    passes = _transfers(inp, F, light, cone, np.concatenate([gb.window_position[covered], points[hit]]),
+                        np.concatenate([gb.window_normal[covered], normals[hit]]))
     on_object = _rows(passes, 0, n_obj)
     values = _object_colour(inp, _shading(inp, F, on_object, l_real, l_real)[1], covered)
     l_virt = values.mean(axis=0) if n_obj else np.zeros(3, np.float32)
@@ -146,7 +145,7 @@ def render_voxel(inp: RenderInput) -> Layers:
 def render_none(inp: RenderInput) -> Layers:
     """The object lit by the unoccluded lighting; real pixels unchanged (the 'no shadow' baseline)."""
     covered = _covered(inp)
-    transfer = sh.unoccluded_transfer(inp.gbuffer.normal[inp.gbuffer.box][covered], sh.bands_of(inp.F.shape[1]))
+    transfer = sh.unoccluded_transfer(inp.gbuffer.window_normal[covered], sh.bands_of(inp.F.shape[1]))
     return Layers(_virtual_colour(inp, _object_colour(inp, inp.gain * shade(inp.F, transfer), covered), covered),
                   inp.gbuffer.coverage,
                   np.ones(inp.camera.shape, np.float32), region=inp.gbuffer.window)
