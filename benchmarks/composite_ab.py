@@ -39,6 +39,8 @@ def composites(session: str, frames: str, device: str, out: str) -> None:
 
 
 def main() -> None:
+    if len(sys.argv) < 3:
+        sys.exit(__doc__)
     if sys.argv[1] == "--child":
         composites(*sys.argv[2:])
         return
