@@ -417,7 +417,7 @@ class Pipeline:
                 self._held, self._held_for = (frame.index, F, dataclasses.replace(diag, notes=list(diag.notes))), 0
             if self.render is not None:
                 with self._timed(t, "render"):
-                    composite = self.render(prep.linear, prep.depth, grid, maps, pose, F.sh, gain, diag.sun)
+                    composite = self.render(prep.linear, prep.depth, grid, maps, pose, F.sh, gain, diag.sun, t)
         if F is None:  # no pose: keep the previous estimate (or darkness), flagged weak
             prev = self.prev_F if self.prev_F is not None else np.zeros((3, self.solver_cfg.fit_bands ** 2))
             F, diag = Lighting(prev.copy()), SolveDiagnostics(notes=["no pose: previous estimate repeated"])

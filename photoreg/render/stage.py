@@ -2,6 +2,8 @@
 (bad objects fail here, before any frame), then per frame G-buffer -> renderer layers -> composite."""
 from __future__ import annotations
 
+import time
+
 import numpy as np
 
 from photoreg.config import Session
@@ -55,10 +57,14 @@ class RenderStage:
         return int(x0), int(y0), int(x1), int(y1)
 
     def __call__(self, camera: np.ndarray, sensor_depth: np.ndarray, grid: DenseGrid, maps: SurfaceMaps,
-                 pose: np.ndarray, F: np.ndarray, gain: float = 1.0, sun: dict | None = None) -> np.ndarray:
+                 pose: np.ndarray, F: np.ndarray, gain: float = 1.0, sun: dict | None = None,
+                 timings: dict[str, float] | None = None) -> np.ndarray:
         """Composite (H, W, 3 linear) of one frame: camera linear image, sensor depth (metres, 0 invalid),
         real grid and its stride maps, pose (camera-to-world), lighting F (3, B*B), exposure gain and the
-        traced light (SolveDiagnostics.sun) when the solve found one."""
+        traced light (SolveDiagnostics.sun) when the solve found one. `timings`: gets the ms of its parts,
+        'render gbuffer' (the window's surface ray cast and the G-buffer), 'render shadows' (the renderer) and
+        'render composite' (host time; each part ends on its own read-back, so a device's work lands in it)."""
+        t0 = time.perf_counter()
         rc, lc = self.session.reconstruction, self.session.lighting
         x0, y0, x1, y1 = self.window(pose)
         real_depth = np.zeros(sensor_depth.shape, np.float32)   # the G-buffer reads its window alone
@@ -74,5 +80,11 @@ class RenderStage:
                           directions=self.directions, offset=lc.ray_offset_voxels * rc.voxel_size,
                           ray_length=lc.ray_length, light_rays=self.session.render.light_rays,
                           scene=self.scene, sun=sun, surface=surface, surface_origin=(x0, y0))
+        t1 = time.perf_counter()
         self.last_input, self.last = inp, self.renderer(inp)
-        return composite(camera, self.last)
+        t2 = time.perf_counter()
+        out = composite(camera, self.last)
+        if timings is not None:
+            for part, ms in (("gbuffer", t1 - t0), ("shadows", t2 - t1), ("composite", time.perf_counter() - t2)):
+                timings["render " + part] = ms * 1000.0
+        return out
