@@ -15,7 +15,6 @@ from __future__ import annotations
 import os
 import threading
 from dataclasses import dataclass
-from functools import cached_property
 from pathlib import Path
 
 import numpy as np
@@ -26,6 +25,23 @@ from photoreg.types import Intrinsics
 
 Z_NEAR, Z_FAR = 0.01, 100.0
 OPENCV_TO_OPENGL = np.diag([1.0, -1.0, -1.0, 1.0])  # camera axes: y down, z forward -> y up, z backward
+
+
+class _FullFrame:
+    """A G-buffer layer at full resolution: its `window_<name>` field placed in a zero frame, made when first read
+    and kept in the instance."""
+
+    def __set_name__(self, owner, name: str) -> None:
+        self.name = name
+
+    def __get__(self, gb: "GBuffer | None", owner=None):
+        if gb is None:
+            return self
+        layer = getattr(gb, "window_" + self.name)
+        out = np.zeros(gb.coverage.shape + layer.shape[2:], np.float32)
+        out[gb.box] = layer
+        gb.__dict__[self.name] = out   # read from the instance from now on (a non-data descriptor)
+        return out
 
 
 @dataclass
@@ -48,30 +64,10 @@ class GBuffer:
         x0, y0, x1, y1 = self.window
         return slice(y0, y1), slice(x0, x1)
 
-    def _full(self, layer: np.ndarray) -> np.ndarray:
-        out = np.zeros(self.coverage.shape + layer.shape[2:], np.float32)
-        out[self.box] = layer
-        return out
-
-    @cached_property
-    def depth(self) -> np.ndarray:
-        """(H, W) float32 camera z in metres, 0 = none."""
-        return self._full(self.window_depth)
-
-    @cached_property
-    def position(self) -> np.ndarray:
-        """(H, W, 3) float32 world point."""
-        return self._full(self.window_position)
-
-    @cached_property
-    def normal(self) -> np.ndarray:
-        """(H, W, 3) float32 world unit normal, facing the camera."""
-        return self._full(self.window_normal)
-
-    @cached_property
-    def albedo(self) -> np.ndarray:
-        """(H, W, 3) float32 linear RGB."""
-        return self._full(self.window_albedo)
+    depth = _FullFrame()     # (H, W) float32 camera z in metres, 0 = none
+    position = _FullFrame()  # (H, W, 3) float32 world point
+    normal = _FullFrame()    # (H, W, 3) float32 world unit normal, facing the camera
+    albedo = _FullFrame()    # (H, W, 3) float32 linear RGB
 
 
 def _import_pyrender():
