@@ -2,7 +2,8 @@
 
 Every stage is timed; timings travel with the FrameResult. Lighting samples are the pixels
 (r*stride, c*stride); the observed radiance there is a box average centred on the pixel (less
-noise at no extra cost) and a sample is used only when its whole box is usable (preprocess.strided_box). The
+noise at no extra cost) and a sample is used only when its whole box is usable and the fused surface agrees with
+the frame's depth (preprocess.strided_box and lighting.samples on the CPU, kernels.samples on a GPU). The
 solve also takes samples of earlier views (photoreg.lighting.history, lighting.history).
 
 With lighting.asynchronous the estimate (samples, transfer, solve, traced light, history, filter) runs in one worker
@@ -27,6 +28,7 @@ import numpy as np
 from .config import Session
 from .device import init_warp, keep_frame_memory, resolve_device
 from .kernels.raycast import raycast_surface
+from .kernels.samples import AGREES, CANDIDATE, sample_maps
 from .kernels.transfer import make_direction_set, radiance_transfer, visibility
 from .lighting import sh
 from .lighting.bounce import bounce_columns, observed_bounce_terms
@@ -98,6 +100,9 @@ class Pipeline:
                         else None)
         self._in_flight: tuple[int, int, futures.Future] | None = None
         self._frames = 0
+        # the samples' box radiance and depth checks by one kernel over the maps on a GPU; on the CPU by OpenCV's box
+        # filter and numpy over the candidates drawn, faster there (the same samples either way: kernels.samples)
+        self.sample_kernel = self.device != "cpu"
         self._solver = _solve_process() if lc.asynchronous and lc.solve_process else None
         # Extra terms (the bounce, the dominant light) only with fixed bands: order selection compares SH models.
         fixed = self.solver_cfg.select == "fixed"
@@ -139,20 +144,32 @@ class Pipeline:
         does not grow with the resolution (stride 1 at 640x480: 8000 samples of 300000 pixels)."""
         lc = self.session.lighting
         st = maps.stride
-        radiance, usable = strided_box(prep, st)
+        gap = lc.max_depth_gap_voxels * self.session.reconstruction.voxel_size
         ws = maps.valid.shape[1]
-        cand = np.flatnonzero(usable & maps.valid)
+        if not self.sample_kernel:
+            radiance, usable = strided_box(prep, st)
+            cand = np.flatnonzero(usable & maps.valid)
+
+            def agrees(idx: np.ndarray) -> np.ndarray:
+                r, c = np.divmod(idx, ws)
+                return agreement(prep.depth, self.intrinsics, pose, r * st, c * st, maps.depth[r, c],
+                                 maps.normal[r, c], max(2, st), lc.max_normal_angle, gap)
+        else:
+            found = sample_maps(prep.linear, prep.usable, prep.depth, self.intrinsics, pose, maps,
+                                lc.max_normal_angle, gap, self.device)
+            radiance, flags = found.radiance, found.flags.ravel()
+            cand = np.flatnonzero(flags & CANDIDATE)
+
+            def agrees(idx: np.ndarray) -> np.ndarray:
+                return (flags[idx] & AGREES) > 0
         cap = self.solver_cfg.max_samples if cap is None else cap
         rng = np.random.default_rng(self.solver_cfg.seed)
         if cap is not None and cand.size > cap * SAMPLE_SURPLUS:
             cand = np.sort(rng.choice(cand, int(cap * SAMPLE_SURPLUS), replace=False))
-        r, c = np.divmod(cand, ws)
-        ok = np.flatnonzero(agreement(prep.depth, self.intrinsics, pose, r * st, c * st, maps.depth[r, c],
-                                      maps.normal[r, c], max(2, st), lc.max_normal_angle,
-                                      lc.max_depth_gap_voxels * self.session.reconstruction.voxel_size))
+        ok = cand[agrees(cand)]
         if cap is not None and ok.size > cap:
             ok = np.sort(rng.choice(ok, cap, replace=False))
-        r, c = r[ok], c[ok]
+        r, c = np.divmod(ok, ws)
         return radiance[r, c], maps.vertex[r, c], maps.normal[r, c]
 
     def _traced(self, n: int) -> tuple[np.ndarray, int | None]:

@@ -395,6 +395,49 @@ def test_strided_box_is_the_centred_box_mean():
     assert full_radiance is prep.linear and full_usable is prep.usable
 
 
+def test_sample_kernel_draws_the_host_paths_samples():
+    """The GPU's sample path (kernels.samples: box radiance and depth checks by one kernel over the maps, run here
+    on Warp's CPU) gives the flags of strided_box and lighting.samples.agreement at every map pixel, and the
+    pipeline's samples are the same either way, at the lighting's stride and a held frame's."""
+    from photoreg.kernels.raycast import raycast_surface
+    from photoreg.kernels.samples import AGREES, CANDIDATE, sample_maps
+    from photoreg.lighting.samples import agreement
+
+    s = load_session(REPO / "data" / "demo" / "session.toml")
+    s.device, s.lighting.rays = "cpu", 16
+    rec = open_recording(s.recording.path)
+    pipe = pipeline_module.Pipeline(s, rec.intrinsics)
+    for frame in iter_frames(rec, range(3)):
+        prep, pose, _ = pipe.observe(frame, {})
+    lc, rc = s.lighting, s.reconstruction
+    gap = lc.max_depth_gap_voxels * rc.voxel_size
+    checked = 0
+    for st in (1, 2, 4, 8):
+        maps = raycast_surface(pipe.volume.dense_grid(), rec.intrinsics, pose, rc.depth_min, rc.depth_max, stride=st)
+        found = sample_maps(prep.linear, prep.usable, prep.depth, rec.intrinsics, pose, maps, lc.max_normal_angle,
+                            gap, "cpu")
+        radiance, usable = strided_box(prep, st)
+        np.testing.assert_array_equal((found.flags & CANDIDATE) > 0, usable & maps.valid)
+        r, c = np.nonzero(usable & maps.valid)
+        agrees = agreement(prep.depth, rec.intrinsics, pose, r * st, c * st, maps.depth[r, c], maps.normal[r, c],
+                           max(2, st), lc.max_normal_angle, gap)
+        assert 0 < agrees.sum() < agrees.size   # both kinds of candidate are there
+        np.testing.assert_array_equal((found.flags[r, c] & AGREES) > 0, agrees)
+        np.testing.assert_allclose(found.radiance[r, c], radiance[r, c], rtol=1e-5, atol=1e-7)
+        for cap in (None, 500):
+            host = pipe._samples(prep, maps, pose, cap)
+            pipe.sample_kernel = True
+            try:
+                kernel = pipe._samples(prep, maps, pose, cap)
+            finally:
+                pipe.sample_kernel = False
+            np.testing.assert_allclose(kernel[0], host[0], rtol=1e-5, atol=1e-7)
+            np.testing.assert_array_equal(kernel[1], host[1])
+            np.testing.assert_array_equal(kernel[2], host[2])
+            checked += len(host[0])
+    assert checked > 4000
+
+
 def test_fusion_takes_the_sessions_depth_range():
     """reconstruction.depth_min reaches the fusion volume: a wall 8 cm from the camera, inside a depth_min of 5 cm
     (below the fusion's own default of 10 cm), is fused and ray cast (before, the fusion dropped it: nothing fused)."""

@@ -7,7 +7,8 @@ dragged the lighting by tens of degrees. The box-averaged radiance of a sample i
 straddles a depth edge (colour from two surfaces). Both are caught here by comparing, at each sample
 pixel, the ray-cast surface with the frame's own depth map: the depth must match and the normal of
 the depth map (central differences over `step` pixels) must lie within `max_angle_deg` of the ray-cast
-normal. Pixels where the depth map gives no normal (holes, image border) are not trusted.
+normal. Pixels where the depth map gives no normal (holes, image border) are not trusted. On a GPU
+photoreg.kernels.samples makes the same checks at every map pixel in one kernel.
 """
 from __future__ import annotations
 

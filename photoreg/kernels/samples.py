@@ -1,0 +1,138 @@
+"""The lighting samples' pixel checks on the device: one thread per (strided) ray-cast map pixel.
+
+The GPU's path to what the host computes with preprocess.strided_box and lighting.samples.agreement (why the
+checks exist: that module's docstring), with the same flags and radiance to float rounding
+(tests/test_pipeline.py). For the map pixel (r, c), at image pixel (r * stride, c * stride):
+- radiance: the linear colour averaged over the odd box (stride | 1)^2 centred there, mirrored at the image
+  border (OpenCV's BORDER_REFLECT); at stride 1 the pixel's own;
+- CANDIDATE: the whole box is usable (colour neither saturated nor black, depth valid) and the ray cast found a
+  surface there;
+- AGREES: the fused surface agrees with the frame's depth map: depth within `max_gap` metres, normal within the
+  angle of `min_cos` of the depth map's (central differences over `step` pixels, float64 like the host's; none
+  where a neighbour is missing or off the image).
+On an H100 the samples of a held frame took 1.4 ms this way against 2.4 ms on the host (TUM, stride 4; the box
+filter of the whole image and the checks of the candidates drawn); on the CPU, Warp's scalar code is no faster
+than OpenCV's and numpy's at stride 4 and 2.5x slower at stride 1, so the CPU keeps the host path
+(Pipeline.sample_kernel).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from photoreg.device import init_warp
+from photoreg.kernels.launch import launch_rows
+from photoreg.types import Intrinsics
+
+wp = init_warp()
+
+CANDIDATE = wp.constant(1)
+AGREES = wp.constant(2)
+
+
+@dataclass
+class SampleMaps:
+    """Per map pixel (h, w) at image pixels (r * stride, c * stride)."""
+
+    radiance: np.ndarray   # (h, w, 3) float32 linear colour, box-averaged (module docstring); 0 without a surface
+    flags: np.ndarray      # (h, w) uint8: CANDIDATE | AGREES bits
+    stride: int
+
+
+@wp.func
+def _mirror(i: int, n: int) -> int:
+    """OpenCV's BORDER_REFLECT index (fedcba|abcdefgh|hgfedcb) for reaches shorter than the image."""
+    j = i
+    if j < 0:
+        j = -j - 1
+    if j >= n:
+        j = 2 * n - 1 - j
+    return j
+
+
+@wp.func
+def _back_project(depth: wp.array2d(dtype=wp.float32), r: int, c: int, fx: wp.float64, fy: wp.float64,
+                  cx: wp.float64, cy: wp.float64) -> wp.vec3d:
+    """Camera-frame point of pixel (r, c) (z 0 where the pixel is off the image or without depth)."""
+    z = wp.float64(0.0)
+    if r >= 0 and r < depth.shape[0] and c >= 0 and c < depth.shape[1]:
+        z = wp.float64(depth[r, c])
+        if not wp.isfinite(z):
+            z = wp.float64(0.0)
+    return wp.vec3d((wp.float64(c) - cx) / fx * z, (wp.float64(r) - cy) / fy * z, z)
+
+
+@wp.kernel
+def _sample_maps(linear: wp.array2d(dtype=wp.vec3), usable: wp.array2d(dtype=wp.uint8),
+                 depth: wp.array2d(dtype=wp.float32), surface_depth: wp.array2d(dtype=wp.float32),
+                 surface_normal: wp.array2d(dtype=wp.vec3), world_to_cam: wp.mat33d, fx: wp.float64,
+                 fy: wp.float64, cx: wp.float64, cy: wp.float64, stride: int, half: int, step: int,
+                 min_cos: wp.float64, max_gap: wp.float32, row0: int,
+                 radiance: wp.array2d(dtype=wp.vec3), flags: wp.array2d(dtype=wp.uint8)):
+    tr, tc = wp.tid()
+    r = row0 + tr
+    y, x = r * stride, tc * stride
+    zs = surface_depth[r, tc]
+    if zs <= 0.0:   # no surface: no sample (a third of TUM's pixels), no box to average
+        radiance[r, tc] = wp.vec3(0.0, 0.0, 0.0)
+        flags[r, tc] = wp.uint8(0)
+        return
+    h, w = linear.shape[0], linear.shape[1]
+    total = wp.vec3(0.0, 0.0, 0.0)
+    whole = int(1)
+    for dy in range(-half, half + 1):
+        yy = _mirror(y + dy, h)
+        for dx in range(-half, half + 1):
+            xx = _mirror(x + dx, w)
+            total = total + linear[yy, xx]
+            if usable[yy, xx] == wp.uint8(0):
+                whole = 0
+    k = 2 * half + 1
+    radiance[r, tc] = total / float(k * k)
+    out = int(0)
+    if whole == 1:
+        out = CANDIDATE
+        z = depth[y, x]
+        if wp.abs(z - zs) <= max_gap and z > 0.0:
+            # the depth map's normal: cross product of the row and column differences, negated to face the camera
+            right = _back_project(depth, y, x + step, fx, fy, cx, cy)
+            left = _back_project(depth, y, x - step, fx, fy, cx, cy)
+            below = _back_project(depth, y + step, x, fx, fy, cx, cy)
+            above = _back_project(depth, y - step, x, fx, fy, cx, cy)
+            a, b = right - left, below - above
+            n = wp.vec3d(a[2] * b[1] - a[1] * b[2], a[0] * b[2] - a[2] * b[0], a[1] * b[0] - a[0] * b[1])
+            norm = wp.length(n)
+            zero = wp.float64(0.0)
+            if right[2] > zero and left[2] > zero and below[2] > zero and above[2] > zero and norm > zero:
+                ns = surface_normal[r, tc]
+                cam = world_to_cam @ wp.vec3d(wp.float64(ns[0]), wp.float64(ns[1]), wp.float64(ns[2]))
+                if wp.dot(n / norm, cam) >= min_cos:
+                    out = out | AGREES
+    flags[r, tc] = wp.uint8(out)
+
+
+def sample_maps(linear: np.ndarray, usable: np.ndarray, depth: np.ndarray, intr: Intrinsics, pose: np.ndarray,
+                maps, max_angle_deg: float, max_gap: float, device: str) -> SampleMaps:
+    """Box radiance and CANDIDATE / AGREES flags (module docstring) at the pixels of the ray-cast `maps`
+    (photoreg.kernels.raycast.SurfaceMaps, on `device`) of a frame: `linear` (H, W, 3) float32, `usable`
+    (H, W) bool, `depth` (H, W) float32 metres (0 invalid), camera-to-world `pose`. The depth map's normal
+    spans max(2, stride) pixels."""
+    st = maps.stride
+    h, w = maps.depth.shape
+    if (st | 1) // 2 >= min(depth.shape):
+        raise ValueError(f"sample_maps: a {st | 1}-pixel box does not fit a {depth.shape[1]}x{depth.shape[0]} frame")
+    rot = np.asarray(pose, dtype=np.float64)[:3, :3]
+    as_wp = dict(device=device, copy=False) if wp.get_device(device).is_cpu else dict(device=device)
+    radiance = wp.empty((h, w), dtype=wp.vec3, device=device)
+    flags = wp.empty((h, w), dtype=wp.uint8, device=device)
+    launch_rows(_sample_maps, (h, w), device=device,
+                inputs=[wp.array(np.ascontiguousarray(linear, dtype=np.float32), dtype=wp.vec3, **as_wp),
+                        wp.array(np.ascontiguousarray(usable).view(np.uint8), dtype=wp.uint8, **as_wp),
+                        wp.array(np.ascontiguousarray(depth, dtype=np.float32), dtype=wp.float32, **as_wp),
+                        maps.depth_wp, maps.normal_wp, wp.mat33d(*rot.T.ravel()), float(intr.fx), float(intr.fy),
+                        float(intr.cx), float(intr.cy), st, (st | 1) // 2, max(2, st),
+                        math.cos(math.radians(max_angle_deg)), float(max_gap)],
+                outputs=[radiance, flags])
+    return SampleMaps(radiance.numpy(), flags.numpy(), st)
