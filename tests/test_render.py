@@ -277,6 +277,32 @@ def test_upsampled_ratio_in_a_window_is_the_full_frames_there():
     assert (upsample_ratio(ratio_s, near, 4, (120, 160), window=(0, 0, 30, 20)) == 1).all()
 
 
+def test_stride_box_and_box_distance_against_their_definitions():
+    """stride_box: the pixel box of every near sample's bilinear taps, from the near samples' extreme rows and
+    columns, clipped to the frame (None without one); box_distance2: the squared distance of each map vertex to
+    the objects' box, 0 inside, on maps of any shape (one row or column too)."""
+    from types import SimpleNamespace
+
+    from photoreg.render.composite import box_distance2, stride_box
+
+    rng = np.random.default_rng(8)
+    assert stride_box(np.zeros((5, 7), bool), 4, (20, 28)) is None
+    for shape in ((1, 1), (1, 6), (6, 1), (30, 40)):
+        near = rng.random(shape) < 0.2
+        near.flat[rng.integers(near.size)] = True
+        rows, cols = np.nonzero(near)
+        expected = (max((cols.min() - 1) * 4, 0), max((rows.min() - 1) * 4, 0),
+                    min((cols.max() + 1) * 4 + 1, shape[1] * 4), min((rows.max() + 1) * 4 + 1, shape[0] * 4))
+        assert stride_box(near, 4, (shape[0] * 4, shape[1] * 4)) == expected
+        vertex = rng.uniform(-1.0, 1.0, (*shape, 3)).astype(np.float32)
+        bounds = np.array([[-0.2, -0.1, 0.0], [0.3, 0.2, 0.4]])
+        nearest = np.clip(vertex, bounds[0], bounds[1])
+        np.testing.assert_allclose(box_distance2(SimpleNamespace(vertex=vertex), bounds),
+                                   ((vertex - nearest) ** 2).sum(axis=-1), rtol=1e-6, atol=1e-7)
+    inside = SimpleNamespace(vertex=np.array([[[0.0, 0.0, 0.2]]], np.float32))
+    assert box_distance2(inside, np.array([[-0.2, -0.1, 0.0], [0.3, 0.2, 0.4]]))[0, 0] == 0.0
+
+
 @pytest.mark.parametrize("shadows", ["voxel", "none"])
 def test_composite_blends_only_the_layers_region(tmp_path, shadows):
     """The render stage's layers say which box they change (Layers.region: the G-buffer's window and the reach of

@@ -119,10 +119,17 @@ def at_stride(image: np.ndarray, maps: SurfaceMaps) -> np.ndarray:
 
 
 def box_distance2(maps: SurfaceMaps, bounds: np.ndarray) -> np.ndarray:
-    """Squared distance (float32, stride maps' shape) of each stride pixel's real surface to the objects' box."""
+    """Squared distance (float32, stride maps' shape) of each stride pixel's real surface to the objects' box. Axis
+    by axis over strided views: the same values as broadcasting over the vertex map's last axis of 3, whose inner
+    loops of 3 took 4.5x as long (stride 1 at 640x480: 7.6 against 1.7 ms on the 2-core CPU)."""
     lo, hi = np.asarray(bounds, np.float32)   # float32 like the maps: no float64 copies of a full frame
-    gap = np.maximum(np.maximum(lo - maps.vertex, maps.vertex - hi), 0.0)
-    return np.einsum("...i,...i->...", gap, gap)
+    d2 = None
+    for axis in range(3):
+        v = maps.vertex[..., axis]
+        gap = np.maximum(np.maximum(lo[axis] - v, v - hi[axis]), np.float32(0.0))
+        gap *= gap
+        d2 = gap if d2 is None else d2 + gap
+    return d2
 
 
 def near_objects(maps: SurfaceMaps, distance2: np.ndarray, reach: float) -> np.ndarray:
@@ -135,11 +142,12 @@ def stride_box(near: np.ndarray, stride: int, shape: tuple[int, int]) -> tuple[i
     """Pixel box (x0, y0, x1, y1; exclusive) of a full-resolution (H, W) `shape` that holds every pixel whose
     bilinear taps include a `near` stride sample (upsample_ratio's reach); None when no sample is near."""
     H, W = shape
-    rows, cols = np.nonzero(near)
-    if len(rows) == 0:
+    rows = np.flatnonzero(near.any(axis=1))   # the rows and columns holding one: 0.2 ms at stride 1 at 640x480,
+    if len(rows) == 0:                         # np.nonzero's index of every near pixel 0.8
         return None
-    return (int(max((cols.min() - 1) * stride, 0)), int(max((rows.min() - 1) * stride, 0)),
-            int(min((cols.max() + 1) * stride + 1, W)), int(min((rows.max() + 1) * stride + 1, H)))
+    cols = np.flatnonzero(near.any(axis=0))
+    return (int(max((cols[0] - 1) * stride, 0)), int(max((rows[0] - 1) * stride, 0)),
+            int(min((cols[-1] + 1) * stride + 1, W)), int(min((rows[-1] + 1) * stride + 1, H)))
 
 
 def union_box(*boxes: tuple[int, int, int, int] | None) -> tuple[int, int, int, int] | None:
@@ -169,7 +177,7 @@ def upsample_ratio(ratio_s: np.ndarray, near: np.ndarray, stride: int, shape: tu
     # coordinate arrays (the same values as cv2.remap over np.mgrid's, half its time)
     to_stride = np.array([[1.0, 0.0, x0], [0.0, 1.0, y0]]) / stride
     out[y0 - wy0:y1 - wy0, x0 - wx0:x1 - wx0] = cv2.warpAffine(
-        ratio_s.astype(np.float32), to_stride, (x1 - x0, y1 - y0), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+        np.asarray(ratio_s, np.float32), to_stride, (x1 - x0, y1 - y0), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
         borderMode=cv2.BORDER_REPLICATE).reshape(y1 - y0, x1 - x0, -1)
     return out
 

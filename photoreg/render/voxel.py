@@ -37,8 +37,8 @@ def real_radiance(inp: RenderInput, near: np.ndarray, ratio: np.ndarray | None =
     (stride maps, (h, w, 3)) when given: what a blocked ray sees (bounce)."""
     if not near.any():
         return np.zeros(3, np.float32)
-    radiance = at_stride(inp.camera, inp.maps)
-    return (radiance if ratio is None else radiance * ratio)[near].mean(axis=0)
+    radiance = at_stride(inp.camera, inp.maps)[near]   # the few near pixels first, not the whole frame
+    return (radiance if ratio is None else radiance * ratio[near]).mean(axis=0)
 
 
 def _transfers(inp: RenderInput, F: np.ndarray, light: ParametricLight | None, cone: np.ndarray | None,
