@@ -32,13 +32,19 @@ def _virtual_colour(inp: RenderInput, values: np.ndarray, covered: np.ndarray) -
     return colour
 
 
-def real_radiance(inp: RenderInput, near: np.ndarray, ratio: np.ndarray | None = None) -> np.ndarray:
-    """Mean camera radiance (3,) of the real surface at the `near` stride pixels, times the shadow ratio
-    (stride maps, (h, w, 3)) when given: what a blocked ray sees (bounce)."""
-    if not near.any():
+def pixels(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(rows, cols) of a mask's pixels in row-major order: indexing with them gathers what the mask would, at a third
+    of the time of a boolean mask over full-resolution maps (stride 1 at 640x480: 0.8 against 2.7 ms)."""
+    return np.divmod(np.flatnonzero(mask), mask.shape[1])
+
+
+def real_radiance(inp: RenderInput, rows: np.ndarray, cols: np.ndarray, ratio: np.ndarray | None = None) -> np.ndarray:
+    """Mean camera radiance (3,) of the real surface at the stride pixels (rows, cols), times the shadow ratio
+    (stride maps, (h, w, 3)) there when given: what a blocked ray sees (bounce)."""
+    if len(rows) == 0:
         return np.zeros(3, np.float32)
-    radiance = at_stride(inp.camera, inp.maps)[near]   # the few near pixels first, not the whole frame
-    return (radiance if ratio is None else radiance * ratio[near]).mean(axis=0)
+    radiance = at_stride(inp.camera, inp.maps)[rows, cols]
+    return (radiance if ratio is None else radiance * ratio[rows, cols]).mean(axis=0)
 
 
 def _transfers(inp: RenderInput, F: np.ndarray, light: ParametricLight | None, cone: np.ndarray | None,
@@ -95,15 +101,16 @@ def render_voxel(inp: RenderInput) -> Layers:
     cone = None if light is None else cone_directions(light.direction, light.angle, inp.light_rays).astype(np.float32)
     distance2 = box_distance2(maps, inp.bounds)
     near = near_objects(maps, distance2, inp.ray_length)
-    l_real = real_radiance(inp, near)
+    rows, cols = pixels(near)
+    l_real = real_radiance(inp, rows, cols)
     covered = _covered(inp)
     band = seam_band(inp, near)
     # The real points whose shadow ratio is computed: the stride samples near the objects and the seam's pixels.
     # Only those with a ray the objects block can change (R_TRV = R_TR elsewhere, ratio exactly 1): a cheap
     # march of the small virtual grid along every ray of the passes finds them, and the real grid's march, the
     # expensive one, runs at those alone (TUM with the bunny: 864 of the 2090 stride samples near it).
-    n_near = int(near.sum())
-    points, normals = maps.vertex[near], maps.normal[near]
+    n_near = len(rows)
+    points, normals = maps.vertex[rows, cols], maps.normal[rows, cols]
     if band is not None:
         points = np.concatenate([points, inp.surface.vertex[band]])
         normals = np.concatenate([normals, inp.surface.normal[band]])
@@ -126,7 +133,7 @@ def render_voxel(inp: RenderInput) -> Layers:
             ratio_pts[hit[lo:hi]] = shadow_ratio(*_shading(inp, F, _rows(passes, n_obj + lo, n_obj + hi), l_real,
                                                            l_virt))
     ratio_s = np.ones(maps.vertex.shape, np.float32)
-    ratio_s[near] = ratio_pts[:n_near]
+    ratio_s[rows, cols] = ratio_pts[:n_near]
     ratio = upsample_ratio(ratio_s, near, maps.stride, inp.camera.shape[:2])
     if band is not None:
         set_seam(ratio, inp, band, ratio_pts[n_near:])
@@ -136,7 +143,7 @@ def render_voxel(inp: RenderInput) -> Layers:
     # most 10.9% -> 7.6% off per channel; composite si-RMSE, mean of the two frames, 0.071 -> 0.064).
     close = near_objects(maps, distance2, CLOSE * float(np.max(inp.bounds[1] - inp.bounds[0])))
     if close.any():
-        l_close = real_radiance(inp, close, ratio_s)
+        l_close = real_radiance(inp, *pixels(close), ratio_s)
         values = _object_colour(inp, _shading(inp, F, on_object, l_close, l_close)[1], covered)
     region = union_box(gb.window, stride_box(near, maps.stride, ratio.shape[:2]))
     return Layers(_virtual_colour(inp, values, covered), gb.coverage, ratio, notes, region)
