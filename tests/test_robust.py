@@ -648,15 +648,18 @@ def _pipeline(k: Intrinsics, **lighting):
     return Pipeline(s, k)
 
 
-def test_pipeline_hard_frames_are_finite_weak_and_named():
+@pytest.mark.parametrize("sample_kernel", [False, True])
+def test_pipeline_hard_frames_are_finite_weak_and_named(sample_kernel):
     """Black, saturated, 90% depth holes, NaN/inf depth and a frame of another size in an analytic
-    floor-and-box recording (tests/scenes.py): finite, flagged, named; good frames around them are fine."""
+    floor-and-box recording (tests/scenes.py): finite, flagged, named; good frames around them are fine. Also with
+    the GPU's sample path (kernels.samples, here on Warp's CPU)."""
     from scenes import ground_truth_sh, look_at, render
 
     from photoreg.types import Frame
 
     k = Intrinsics(128, 96, 112.0, 112.0, 63.5, 47.5, 5000.0)
     pipe = _pipeline(k)
+    pipe.sample_kernel = sample_kernel
     rng = np.random.default_rng(11)
     results = {}
     for i in range(10):
