@@ -12,7 +12,7 @@ checks exist: that module's docstring), with the same flags and radiance to floa
   where a neighbour is missing or off the image).
 On an H100 the samples of a held frame took 1.4 ms this way against 2.4 ms on the host (TUM, stride 4; the box
 filter of the whole image and the checks of the candidates drawn); on the CPU, Warp's scalar code is no faster
-than OpenCV's and numpy's at stride 4 and 2.5x slower at stride 1, so the CPU keeps the host path
+than OpenCV's and numpy's at stride 4 and 2-2.5x slower at stride 1, so the CPU keeps the host path
 (Pipeline.sample_kernel).
 """
 from __future__ import annotations
