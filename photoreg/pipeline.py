@@ -147,7 +147,7 @@ class Pipeline:
         gap = lc.max_depth_gap_voxels * self.session.reconstruction.voxel_size
         ws = maps.valid.shape[1]
         if not self.sample_kernel:
-            radiance, usable = strided_box(prep, st)
+            radiance, usable = strided_box(prep, st, lc.sample_box)
             cand = np.flatnonzero(usable & maps.valid)
 
             def agrees(idx: np.ndarray) -> np.ndarray:
@@ -156,7 +156,7 @@ class Pipeline:
                                  maps.normal[r, c], max(2, st), lc.max_normal_angle, gap)
         else:
             found = sample_maps(prep.linear, prep.usable, prep.depth, self.intrinsics, pose, maps,
-                                lc.max_normal_angle, gap, self.device)
+                                lc.max_normal_angle, gap, self.device, lc.sample_box)
             radiance, flags = found.radiance, found.flags.ravel()
             cand = np.flatnonzero(flags & CANDIDATE)
 

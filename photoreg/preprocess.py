@@ -23,13 +23,15 @@ class Prepared:
     valid_depth_fraction: float
 
 
-def strided_box(prep: Prepared, stride: int) -> tuple[np.ndarray, np.ndarray]:
-    """(radiance, usable) at the pixels (r * stride, c * stride): the linear radiance averaged over an odd box
-    (stride | 1) centred on the pixel (less noise at no extra cost), and whether the whole box is usable; at stride 1
-    the pixel's own."""
-    if stride == 1:
-        return prep.linear, prep.usable
-    k = (stride | 1, stride | 1)
+def strided_box(prep: Prepared, stride: int, box: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """(radiance, usable) at the pixels (r * stride, c * stride): the linear radiance averaged over an odd box of
+    `box` pixels (0: stride | 1, the stride's cell) centred on the pixel (less noise at no extra cost), and whether
+    the whole box is usable; a box of 1 is the pixel's own."""
+    box = box or (stride | 1)
+    if box == 1:
+        return (prep.linear, prep.usable) if stride == 1 else (prep.linear[::stride, ::stride],
+                                                               prep.usable[::stride, ::stride])
+    k = (box, box)
     radiance = cv2.boxFilter(prep.linear, -1, k, borderType=cv2.BORDER_REFLECT)[::stride, ::stride]
     # the whole box usable: an erosion (0.2 ms at 640x480 against 0.5 for a box filter of the mask)
     usable = cv2.erode(prep.usable.view(np.uint8), np.ones(k, np.uint8), borderType=cv2.BORDER_REFLECT)

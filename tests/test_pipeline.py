@@ -393,12 +393,28 @@ def test_strided_box_is_the_centred_box_mean():
     assert not usable[2, 2] and usable.sum() > 80
     full_radiance, full_usable = strided_box(prep, 1)
     assert full_radiance is prep.linear and full_usable is prep.usable
+    for bad in (2, -1, 17):
+        s.lighting.sample_box = bad
+        with pytest.raises(ValueError, match="sample_box"):
+            validate(s)
+    small, small_usable = strided_box(prep, 4, 3)   # lighting.sample_box: a 3 x 3 box at stride 4
+    for r, c in [(0, 0), (3, 5), (7, 10)]:
+        np.testing.assert_allclose(small[r, c], padded[4 * r + 1:4 * r + 4, 4 * c + 1:4 * c + 4].reshape(-1, 3).mean(0),
+                                   rtol=1e-5)
+    bad = np.pad(~prep.usable, 1, mode="symmetric")
+    expected = np.array([[not bad[4 * r:4 * r + 3, 4 * c:4 * c + 3].any() for c in range(11)] for r in range(8)])
+    np.testing.assert_array_equal(small_usable, expected)
+    assert not small_usable[2, 2]
+    own, own_usable = strided_box(prep, 4, 1)
+    np.testing.assert_array_equal(own, prep.linear[::4, ::4])
+    np.testing.assert_array_equal(own_usable, prep.usable[::4, ::4])
 
 
 def test_sample_kernel_draws_the_host_paths_samples():
     """The GPU's sample path (kernels.samples: box radiance and depth checks by one kernel over the maps, run here
     on Warp's CPU) gives the flags of strided_box and lighting.samples.agreement at every map pixel, and the
-    pipeline's samples are the same either way, at the lighting's stride and a held frame's."""
+    pipeline's samples are the same either way, at the lighting's stride and a held frame's, with the stride's box
+    and other boxes (lighting.sample_box)."""
     from photoreg.kernels.raycast import raycast_surface
     from photoreg.kernels.samples import AGREES, CANDIDATE, sample_maps
     from photoreg.lighting.samples import agreement
@@ -412,11 +428,12 @@ def test_sample_kernel_draws_the_host_paths_samples():
     lc, rc = s.lighting, s.reconstruction
     gap = lc.max_depth_gap_voxels * rc.voxel_size
     checked = 0
-    for st in (1, 2, 4, 8):
+    for st, box in ((1, 0), (2, 0), (4, 0), (8, 0), (4, 3), (4, 1), (2, 5)):
+        lc.sample_box = box
         maps = raycast_surface(pipe.volume.dense_grid(), rec.intrinsics, pose, rc.depth_min, rc.depth_max, stride=st)
         found = sample_maps(prep.linear, prep.usable, prep.depth, rec.intrinsics, pose, maps, lc.max_normal_angle,
-                            gap, "cpu")
-        radiance, usable = strided_box(prep, st)
+                            gap, "cpu", box)
+        radiance, usable = strided_box(prep, st, box)
         np.testing.assert_array_equal((found.flags & CANDIDATE) > 0, usable & maps.valid)
         r, c = np.nonzero(usable & maps.valid)
         agrees = agreement(prep.depth, rec.intrinsics, pose, r * st, c * st, maps.depth[r, c], maps.normal[r, c],
@@ -435,7 +452,7 @@ def test_sample_kernel_draws_the_host_paths_samples():
             np.testing.assert_array_equal(kernel[1], host[1])
             np.testing.assert_array_equal(kernel[2], host[2])
             checked += len(host[0])
-    assert checked > 4000
+    assert checked > 7000
 
 
 def test_fusion_takes_the_sessions_depth_range():

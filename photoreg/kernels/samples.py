@@ -3,8 +3,8 @@
 The GPU's path to what the host computes with preprocess.strided_box and lighting.samples.agreement (why the
 checks exist: that module's docstring), with the same flags and radiance to float rounding
 (tests/test_pipeline.py). For the map pixel (r, c), at image pixel (r * stride, c * stride):
-- radiance: the linear colour averaged over the odd box (stride | 1)^2 centred there, mirrored at the image
-  border (OpenCV's BORDER_REFLECT); at stride 1 the pixel's own;
+- radiance: the linear colour averaged over an odd box (lighting.sample_box; stride | 1 by default) centred there,
+  mirrored at the image border (OpenCV's BORDER_REFLECT); a box of 1 is the pixel's own;
 - CANDIDATE: the whole box is usable (colour neither saturated nor black, depth valid) and the ray cast found a
   surface there;
 - AGREES: the fused surface agrees with the frame's depth map: depth within `max_gap` metres, normal within the
@@ -114,15 +114,16 @@ def _sample_maps(linear: wp.array2d(dtype=wp.vec3), usable: wp.array2d(dtype=wp.
 
 
 def sample_maps(linear: np.ndarray, usable: np.ndarray, depth: np.ndarray, intr: Intrinsics, pose: np.ndarray,
-                maps, max_angle_deg: float, max_gap: float, device: str) -> SampleMaps:
+                maps, max_angle_deg: float, max_gap: float, device: str, box: int = 0) -> SampleMaps:
     """Box radiance and CANDIDATE / AGREES flags (module docstring) at the pixels of the ray-cast `maps`
     (photoreg.kernels.raycast.SurfaceMaps, on `device`) of a frame: `linear` (H, W, 3) float32, `usable`
-    (H, W) bool, `depth` (H, W) float32 metres (0 invalid), camera-to-world `pose`. The depth map's normal
-    spans max(2, stride) pixels."""
+    (H, W) bool, `depth` (H, W) float32 metres (0 invalid), camera-to-world `pose`; an odd `box` of pixels
+    (0: stride | 1). The depth map's normal spans max(2, stride) pixels."""
     st = maps.stride
     h, w = maps.depth.shape
-    if (st | 1) // 2 >= min(depth.shape):
-        raise ValueError(f"sample_maps: a {st | 1}-pixel box does not fit a {depth.shape[1]}x{depth.shape[0]} frame")
+    box = box or (st | 1)
+    if box // 2 >= min(depth.shape):
+        raise ValueError(f"sample_maps: a {box}-pixel box does not fit a {depth.shape[1]}x{depth.shape[0]} frame")
     rot = np.asarray(pose, dtype=np.float64)[:3, :3]
     as_wp = dict(device=device, copy=False) if wp.get_device(device).is_cpu else dict(device=device)
     radiance = wp.empty((h, w), dtype=wp.vec3, device=device)
@@ -132,7 +133,7 @@ def sample_maps(linear: np.ndarray, usable: np.ndarray, depth: np.ndarray, intr:
                         wp.array(np.ascontiguousarray(usable).view(np.uint8), dtype=wp.uint8, **as_wp),
                         wp.array(np.ascontiguousarray(depth, dtype=np.float32), dtype=wp.float32, **as_wp),
                         maps.depth_wp, maps.normal_wp, wp.mat33d(*rot.T.ravel()), float(intr.fx), float(intr.fy),
-                        float(intr.cx), float(intr.cy), st, (st | 1) // 2, max(2, st),
+                        float(intr.cx), float(intr.cy), st, box // 2, max(2, st),
                         math.cos(math.radians(max_angle_deg)), float(max_gap)],
                 outputs=[radiance, flags])
     return SampleMaps(radiance.numpy(), flags.numpy(), st)
