@@ -88,10 +88,14 @@ HOLDOUT = 0.2
 START, END = "<!-- generated:start -->", "<!-- generated:end -->"
 
 
-def run(recording: Path, lighting: dict, frames: int, holdout: bool) -> dict:
+def run(recording: Path, lighting: dict, frames: int, holdout: bool, seed: int | None = None) -> dict:
     """Process the first `frames` frames in-process with LightingConfig overrides `lighting` (and a
     "reconstruction" dict of ReconstructionConfig overrides in it); per-frame SH, diagnostics, solve times and
-    the solve's normal equations (None where a frame had no solve; benchmarks/observability.py)."""
+    the solve's normal equations (None where a frame had no solve; benchmarks/observability.py). `seed`: every
+    random draw of the pipeline (the solve's samples, the history's, the direction set's rotation) from it instead
+    of the defaults' (benchmarks/lighting_seeds.py)."""
+    from photoreg.kernels.transfer import make_direction_set
+    from photoreg.lighting.history import SampleHistory
     from photoreg.pipeline import Pipeline
 
     s = Session()
@@ -103,6 +107,11 @@ def run(recording: Path, lighting: dict, frames: int, holdout: bool) -> dict:
     if not rec.has_poses:
         s.recording.use_poses = False
     pipe = Pipeline(s, rec.intrinsics)
+    if seed is not None:
+        pipe.solver_cfg = dataclasses.replace(pipe.solver_cfg, seed=seed)
+        if pipe.history is not None:
+            pipe.history = SampleHistory(s.lighting.history, seed=seed, view_deg=s.lighting.history_view_deg)
+        pipe.dirs, pipe.Y = make_direction_set(s.lighting.rays, pipe.solver_cfg.fit_bands, seed=seed)
     if holdout:
         pipe.solver_cfg = dataclasses.replace(pipe.solver_cfg, holdout_fraction=HOLDOUT)
     out = {"sh": [], "diag": [], "solve_ms": [], "system": []}

@@ -9,7 +9,6 @@ degrees, irradiance si-RMSE over the upper hemisphere (with its range) and flick
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import sys
 from pathlib import Path
 
@@ -19,42 +18,12 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import lighting_accuracy as la  # noqa: E402  (puts the repository first on the path)
 
 from photoreg.bench.score import load_gt  # noqa: E402
-from photoreg.config import LightingConfig, Session  # noqa: E402
-from photoreg.io.recording import iter_frames, open_recording  # noqa: E402
-from photoreg.kernels.transfer import make_direction_set  # noqa: E402
-from photoreg.lighting.history import SampleHistory  # noqa: E402
-from photoreg.pipeline import Pipeline  # noqa: E402
 
 RECORDINGS = [("tabletop", "tabletop", 12), ("tabletop, sun azimuth 150", "tabletop_sun_azimuth_150", 12),
               ("tabletop, sun azimuth 270", "tabletop_sun_azimuth_270", 12),
               ("tabletop, handheld camera", "tabletop_handheld_camera", 12), ("tabletop, 640x480", "tabletop_640x480", 12),
               ("coloured", "coloured", 12), ("coloured, sun azimuth 150", "coloured_sun_azimuth_150", 12),
               ("corner", "corner", 12), ("tabletop, 40 frames", "tabletop_40_frames", 40)]
-
-
-def run(path: Path, change: dict, frames: int, seed: int) -> dict:
-    """lighting_accuracy.run's frames with every random draw of the pipeline seeded by `seed`."""
-    s = Session()
-    s.recording.path = str(path)
-    change = dict(change)
-    s.reconstruction = dataclasses.replace(s.reconstruction, **change.pop("reconstruction", {}))
-    s.lighting = lc = dataclasses.replace(LightingConfig(), **change)
-    rec = open_recording(path)
-    pipe = Pipeline(s, rec.intrinsics)
-    pipe.solver_cfg = dataclasses.replace(pipe.solver_cfg, seed=seed)
-    if pipe.history is not None:
-        pipe.history = SampleHistory(lc.history, seed=seed, view_deg=lc.history_view_deg)
-    pipe.dirs, pipe.Y = make_direction_set(lc.rays, pipe.solver_cfg.fit_bands, seed=seed)
-    out = {"sh": [], "diag": [], "solve_ms": []}
-    try:
-        for frame in iter_frames(rec, list(range(min(frames, len(rec))))):
-            r = pipe.process(frame)
-            out["sh"].append(r.lighting.sh)
-            out["diag"].append(r.diagnostics)
-            out["solve_ms"].append(r.timings_ms.get("solve", 0.0))
-    finally:
-        pipe.close()
-    return out
 
 
 def main() -> int:
@@ -77,7 +46,7 @@ def main() -> int:
         path = Path(a.synth_dir) / folder
         gt = load_gt(path)
         for change in changes:
-            rows = [la.summary(run(path, la.ABLATIONS[change], frames, seed), gt) for seed in seeds]
+            rows = [la.summary(la.run(path, la.ABLATIONS[change], frames, False, seed), gt) for seed in seeds]
             res[name, change] = np.array([[r["direction_deg"], r["irradiance_si_rmse_upper"], r["flicker"]]
                                           for r in rows])
             v = res[name, change]
