@@ -54,8 +54,8 @@ class LightingConfig:
     rays: int = 64                # visibility rays per sample over the hemisphere
     stride: int = 4               # sample every n-th pixel in x and y
     # Odd box (pixels) whose mean radiance a sample takes, the whole box usable; 0: stride | 1 (the stride's cell).
-    # 3 at stride 4, 3 seeds x 9 generated recordings: si-RMSE 0.098 against 0.106, the same flicker
-    # (benchmarks/lighting_accuracy.md, rows "sample_box 3")
+    # 3 at stride 4, 3 seeds x 9 generated recordings: si-RMSE 0.098 against 0.106, the same flicker; on the real
+    # recordings no better (ICL-NUIM flicker 0.059 against 0.037; benchmarks/lighting_accuracy.md, "sample_box 3")
     sample_box: int = 0
     ray_length: float = 0.5       # metres
     ray_offset_voxels: float = 1.5
