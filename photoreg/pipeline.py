@@ -103,6 +103,9 @@ class Pipeline:
         # the samples' box radiance and depth checks by one kernel over the maps on a GPU; on the CPU by OpenCV's box
         # filter and numpy over the candidates drawn, faster there (the same samples either way: kernels.samples)
         self.sample_kernel = self.device != "cpu"
+        # the last frame's per-pixel sample checks (prep, maps, sample_kernel, result): a frame that hands its estimate to the worker
+        # (lighting.asynchronous) takes its gain's samples from the same maps first, and the worker reuses them
+        self._checked: tuple | None = None
         self._solver = _solve_process() if lc.asynchronous and lc.solve_process else None
         # Extra terms (the bounce, the dominant light) only with fixed bands: order selection compares SH models.
         fixed = self.solver_cfg.select == "fixed"
@@ -146,8 +149,16 @@ class Pipeline:
         st = maps.stride
         gap = lc.max_depth_gap_voxels * self.session.reconstruction.voxel_size
         ws = maps.valid.shape[1]
+        checked = self._checked
+        if (checked is None or checked[0] is not prep or checked[1] is not maps
+                or checked[2] != self.sample_kernel):
+            checked = (prep, maps, self.sample_kernel,
+                       strided_box(prep, st, lc.sample_box) if not self.sample_kernel else
+                       sample_maps(prep.linear, prep.usable, prep.depth, self.intrinsics, pose, maps,
+                                   lc.max_normal_angle, gap, self.device, lc.sample_box))
+            self._checked = checked   # one tuple, replaced whole: the worker and the frames read it without a lock
         if not self.sample_kernel:
-            radiance, usable = strided_box(prep, st, lc.sample_box)
+            radiance, usable = checked[3]
             cand = np.flatnonzero(usable & maps.valid)
 
             def agrees(idx: np.ndarray) -> np.ndarray:
@@ -155,9 +166,7 @@ class Pipeline:
                 return agreement(prep.depth, self.intrinsics, pose, r * st, c * st, maps.depth[r, c],
                                  maps.normal[r, c], max(2, st), lc.max_normal_angle, gap)
         else:
-            found = sample_maps(prep.linear, prep.usable, prep.depth, self.intrinsics, pose, maps,
-                                lc.max_normal_angle, gap, self.device, lc.sample_box)
-            radiance, flags = found.radiance, found.flags.ravel()
+            radiance, flags = checked[3].radiance, checked[3].flags.ravel()
             cand = np.flatnonzero(flags & CANDIDATE)
 
             def agrees(idx: np.ndarray) -> np.ndarray:

@@ -455,6 +455,31 @@ def test_sample_kernel_draws_the_host_paths_samples():
     assert checked > 7000
 
 
+def test_samples_of_one_frame_check_its_pixels_once(monkeypatch):
+    """A frame that hands its estimate to the worker (lighting.asynchronous) takes its gain's samples from the maps
+    the worker's estimate reads next: the per-pixel checks (strided_box, kernels.samples on a GPU) run once for both,
+    and the samples are those of a fresh check."""
+    from photoreg.kernels.raycast import raycast_surface
+
+    s = load_session(REPO / "data" / "demo" / "session.toml")
+    s.device, s.lighting.rays = "cpu", 16
+    rec = open_recording(s.recording.path)
+    pipe = pipeline_module.Pipeline(s, rec.intrinsics)
+    for frame in iter_frames(rec, range(2)):
+        prep, pose, _ = pipe.observe(frame, {})
+    rc = s.reconstruction
+    maps = raycast_surface(pipe.volume.dense_grid(), rec.intrinsics, pose, rc.depth_min, rc.depth_max, stride=4)
+    calls = []
+    monkeypatch.setattr(pipeline_module, "strided_box", lambda *a: calls.append(a) or strided_box(*a))
+    gain = pipe._samples(prep, maps, pose, pipeline_module.GAIN_SAMPLES)
+    estimate = pipe._samples(prep, maps, pose)
+    assert len(calls) == 1 and len(gain[0]) < len(estimate[0])
+    pipe._checked = None
+    for fresh, kept in zip(pipe._samples(prep, maps, pose), estimate):
+        np.testing.assert_array_equal(fresh, kept)
+    assert len(calls) == 2
+
+
 def test_fusion_takes_the_sessions_depth_range():
     """reconstruction.depth_min reaches the fusion volume: a wall 8 cm from the camera, inside a depth_min of 5 cm
     (below the fusion's own default of 10 cm), is fused and ray cast (before, the fusion dropped it: nothing fused)."""

@@ -38,7 +38,6 @@ class SampleMaps:
 
     radiance: np.ndarray   # (h, w, 3) float32 linear colour, box-averaged (module docstring); 0 without a surface
     flags: np.ndarray      # (h, w) uint8: CANDIDATE | AGREES bits
-    stride: int
 
 
 @wp.func
@@ -136,4 +135,4 @@ def sample_maps(linear: np.ndarray, usable: np.ndarray, depth: np.ndarray, intr:
                         float(intr.cx), float(intr.cy), st, box // 2, max(2, st),
                         math.cos(math.radians(max_angle_deg)), float(max_gap)],
                 outputs=[radiance, flags])
-    return SampleMaps(radiance.numpy(), flags.numpy(), st)
+    return SampleMaps(radiance.numpy(), flags.numpy())
