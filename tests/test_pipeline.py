@@ -410,6 +410,17 @@ def test_strided_box_is_the_centred_box_mean():
     np.testing.assert_array_equal(own_usable, prep.usable[::4, ::4])
 
 
+def _demo_observed(frames: int):
+    """(pipeline, recording, prepared frame, pose) after the demo's first `frames` frames were fused on the CPU."""
+    s = load_session(REPO / "data" / "demo" / "session.toml")
+    s.device, s.lighting.rays = "cpu", 16
+    rec = open_recording(s.recording.path)
+    pipe = pipeline_module.Pipeline(s, rec.intrinsics)
+    for frame in iter_frames(rec, range(frames)):
+        prep, pose, _ = pipe.observe(frame, {})
+    return pipe, rec, prep, pose
+
+
 def test_sample_kernel_draws_the_host_paths_samples():
     """The GPU's sample path (kernels.samples: box radiance and depth checks by one kernel over the maps, run here
     on Warp's CPU) gives the flags of strided_box and lighting.samples.agreement at every map pixel, and the
@@ -419,12 +430,8 @@ def test_sample_kernel_draws_the_host_paths_samples():
     from photoreg.kernels.samples import AGREES, CANDIDATE, sample_maps
     from photoreg.lighting.samples import agreement
 
-    s = load_session(REPO / "data" / "demo" / "session.toml")
-    s.device, s.lighting.rays = "cpu", 16
-    rec = open_recording(s.recording.path)
-    pipe = pipeline_module.Pipeline(s, rec.intrinsics)
-    for frame in iter_frames(rec, range(3)):
-        prep, pose, _ = pipe.observe(frame, {})
+    pipe, rec, prep, pose = _demo_observed(3)
+    s = pipe.session
     lc, rc = s.lighting, s.reconstruction
     gap = lc.max_depth_gap_voxels * rc.voxel_size
     checked = 0
@@ -461,13 +468,8 @@ def test_samples_of_one_frame_check_its_pixels_once(monkeypatch):
     and the samples are those of a fresh check."""
     from photoreg.kernels.raycast import raycast_surface
 
-    s = load_session(REPO / "data" / "demo" / "session.toml")
-    s.device, s.lighting.rays = "cpu", 16
-    rec = open_recording(s.recording.path)
-    pipe = pipeline_module.Pipeline(s, rec.intrinsics)
-    for frame in iter_frames(rec, range(2)):
-        prep, pose, _ = pipe.observe(frame, {})
-    rc = s.reconstruction
+    pipe, rec, prep, pose = _demo_observed(2)
+    rc = pipe.session.reconstruction
     maps = raycast_surface(pipe.volume.dense_grid(), rec.intrinsics, pose, rc.depth_min, rc.depth_max, stride=4)
     calls = []
     monkeypatch.setattr(pipeline_module, "strided_box", lambda *a: calls.append(a) or strided_box(*a))
