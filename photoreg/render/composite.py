@@ -119,16 +119,17 @@ def at_stride(image: np.ndarray, maps: SurfaceMaps) -> np.ndarray:
 
 
 def box_distance2(maps: SurfaceMaps, bounds: np.ndarray) -> np.ndarray:
-    """Squared distance (float32, stride maps' shape) of each stride pixel's real surface to the objects' box. Axis
-    by axis over strided views: the same values as broadcasting over the vertex map's last axis of 3, whose inner
-    loops of 3 took 4.5x as long (stride 1 at 640x480: 7.6 against 1.7 ms on the 2-core CPU)."""
+    """Squared distance (float32, stride maps' shape) of each stride pixel's real surface to the objects' box: per
+    axis (v clipped to the box - v)^2, summed x, y, z in that order, over the vertex map's channels split apart (the
+    same values as broadcasting over its last axis of 3, whose inner loops of 3 took 9x as long; strided views of
+    the channels 2x: stride 1 at 640x480, 0.8 against 1.7 and 7.6 ms on the 2-core CPU)."""
     lo, hi = np.asarray(bounds, np.float32)   # float32 like the maps: no float64 copies of a full frame
     d2 = None
-    for axis in range(3):
-        v = maps.vertex[..., axis]
-        gap = np.maximum(np.maximum(lo[axis] - v, v - hi[axis]), np.float32(0.0))
+    for axis, v in enumerate(cv2.split(maps.vertex)):
+        gap = np.clip(v, lo[axis], hi[axis])
+        gap -= v
         gap *= gap
-        d2 = gap if d2 is None else d2 + gap
+        d2 = gap if d2 is None else cv2.add(d2, gap, dst=d2)
     return d2
 
 
