@@ -94,8 +94,9 @@ a GPU: `lighting.history = 0` (or `--no-history` here).
 
 ## BLAS threads for the host-side solve (`gpu_run.sh ... blas`, one call, 2026-11-24 late; median frames)
 {blas_table}
-photoreg leaves numpy's BLAS threaded on hosts with more than 4 cores (photoreg/__init__.py) and uses one
-thread on 4 or fewer, where threads only contend with Warp and the renderer. The rows differ by less than
+photoreg left numpy's BLAS threaded on hosts with more than 4 cores then (photoreg/__init__.py) and used one
+thread on 4 or fewer, where threads only contend with Warp and the renderer; since 2026-11-27 it uses one thread
+everywhere (the section "Many sessions on one GPU"). The rows differ by less than
 calls do (an earlier call before the history ranked 4 threads first, this one 1 thread): the solve's systems
 are small (K <= 28 unknowns) and the BLAS share of its time is small.
 

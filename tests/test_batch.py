@@ -161,3 +161,32 @@ def test_local_workers_share_the_cores(monkeypatch):
     monkeypatch.setenv("PHOTOREG_CPU_THREADS", "5")
     local._init_worker(None, 3)
     assert cpu_threads() == 5
+
+
+def test_default_workers_share_each_gpu():
+    """Without --workers: on GPUs one worker per CORES_PER_GPU_WORKER host cores of each GPU's share, at most
+    one per GPU_MEMORY_PER_WORKER of its memory, at least one per GPU; without GPUs one per core."""
+    from photoreg.batch import local
+
+    gib = 1024 ** 3
+    assert local.default_workers(16, [80 * gib]) == 8          # one H100 on a 16-core host
+    assert local.default_workers(16, [80 * gib, 80 * gib]) == 8
+    assert local.default_workers(16, [6 * gib]) == 3           # a small GPU: its memory bounds the count
+    assert local.default_workers(2, [80 * gib]) == 1
+    assert local.default_workers(1, [gib, gib]) == 2           # at least one per GPU
+    assert local.default_workers(6, []) == 6
+
+
+def test_photoreg_sets_one_blas_thread_before_numpy_loads():
+    """Importing photoreg (as scripts and spawned batch workers do first) gives numpy's BLAS one thread unless
+    OPENBLAS_NUM_THREADS is set: its numpy then sees it."""
+    import os
+    import subprocess
+
+    code = "import os, photoreg, numpy; print(os.environ['OPENBLAS_NUM_THREADS'])"
+    env = {k: v for k, v in os.environ.items() if k != "OPENBLAS_NUM_THREADS"}
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "1"
+    out = subprocess.run([sys.executable, "-c", code], env={**env, "OPENBLAS_NUM_THREADS": "3"},
+                         capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "3"

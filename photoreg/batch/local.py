@@ -2,6 +2,12 @@
 
 Sessions that may use CUDA get the CUDA devices Warp sees round-robin ("cuda:K"); with none they run on
 the CPU. Worker processes send per-frame progress through a queue handed to them at start-up.
+
+A pipeline on a GPU is bound by its host work (the robust solves, the light search, the render stage), so
+several workers share each GPU by default (default_workers), each with one BLAS thread (photoreg/__init__.py). On
+one H100 with 16 host cores (benchmarks/gpu.md, "Many sessions on one GPU"), 8 sessions of TUM: 8 workers ran
+32.3 frames/s in all against 12.0 for one, 19.2 against 5.1 with an object inserted; with a threaded BLAS in every
+worker (16 threads each on 16 cores) 8 workers ran 13.3 and 9.6.
 """
 from __future__ import annotations
 
@@ -13,6 +19,9 @@ from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from .runner import BatchProgress, SessionTask, failed_result, run_one
 
 _progress_queue = None  # set in each worker process by _init_worker
+
+CORES_PER_GPU_WORKER = 2               # host cores per worker sharing a GPU
+GPU_MEMORY_PER_WORKER = 2 * 1024 ** 3  # bytes of GPU memory per worker (TUM at 1 cm: about 1 GB each, context included)
 
 
 def _init_worker(q, cpu_threads: int) -> None:
@@ -29,19 +38,32 @@ def cpu_share(workers: int) -> int:
     return max(1, (os.cpu_count() or 1) // max(workers, 1))
 
 
+def default_workers(cores: int, gpu_memory: list[int]) -> int:
+    """Workers when --workers is not given: per GPU (`gpu_memory`: each one's bytes) its share of the `cores` at
+    CORES_PER_GPU_WORKER each, at most one per GPU_MEMORY_PER_WORKER of its memory, at least one; without GPUs
+    one per core."""
+    if not gpu_memory:
+        return max(cores, 1)
+    share = max(cores // len(gpu_memory), 1)
+    return sum(max(min(share // CORES_PER_GPU_WORKER, m // GPU_MEMORY_PER_WORKER), 1) for m in gpu_memory)
+
+
 def _run(task: SessionTask) -> dict:
     return run_one(task, _progress_queue)
 
 
-def assign_devices(tasks: list[SessionTask]) -> int:
+def assign_devices(tasks: list[SessionTask]) -> list[int]:
     """Set each session's device to 'cuda:K' round-robin over Warp's CUDA devices unless it asks for the
-    CPU ('auto' falls back to the CPU when there is none, 'cuda' is then an error); returns the GPU count."""
+    CPU ('auto' falls back to the CPU when there is none, 'cuda' is then an error); returns the memory (bytes)
+    of each GPU used (none: an empty list)."""
     wanted = [t for t in tasks if t.session.device != "cpu"]
-    n = 0
+    n, memory = 0, []
     if wanted:
         from ..device import init_warp
 
-        n = init_warp().get_cuda_device_count()
+        wp = init_warp()
+        n = wp.get_cuda_device_count()
+        memory = [int(wp.get_device(f"cuda:{i}").total_memory) for i in range(n)]
     for k, t in enumerate(wanted):
         if n:
             t.session.device = f"cuda:{k % n}"
@@ -49,7 +71,7 @@ def assign_devices(tasks: list[SessionTask]) -> int:
             raise RuntimeError(f"{t.path}: device cuda asked for, but Warp finds no CUDA device on this machine")
         else:
             t.session.device = "cpu"
-    return n
+    return memory
 
 
 def _drain(q, progress: BatchProgress) -> None:
@@ -61,10 +83,10 @@ def _drain(q, progress: BatchProgress) -> None:
 
 
 def run_local(tasks: list[SessionTask], progress: BatchProgress, workers: int | None = None) -> list[dict]:
-    """Run the sessions in `workers` processes (default: one per GPU, else one per CPU core); results in
-    task order. A worker process that dies fails its session (and, the pool being broken, those still queued)."""
-    n_gpus = assign_devices(tasks)
-    workers = min(workers or n_gpus or os.cpu_count() or 1, len(tasks))
+    """Run the sessions in `workers` processes (default: default_workers); results in task order. A worker process that dies fails its session (and, the pool
+    being broken, those still queued)."""
+    memory = assign_devices(tasks)
+    workers = min(workers or default_workers(os.cpu_count() or 1, memory), len(tasks))
     ctx = mp.get_context("spawn")
     q = ctx.Queue()
     results: dict[int, dict] = {}

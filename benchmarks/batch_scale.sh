@@ -1,0 +1,53 @@
+#!/usr/bin/env bash
+# Throughput of `photoreg batch` against its worker count (benchmarks/gpu.md, "Many sessions on one GPU"):
+# SESSIONS session files of $DATA/recordings/tum_fr1_rpy, frames FRAMES, "bare" (the recording alone) and/or "bunny" (with
+# the object of sessions/tum_fr1_rpy.toml), `photoreg batch --workers W` for each W of WORKERS ("default": no
+# --workers), timed whole; one JSON line per run appended to $OUT/batch_scale.jsonl, peak GPU memory (nvidia-smi,
+# every 0.5 s) to $OUT/batch_mem.txt.
+#   OUT=DIR DATA=PHOTOREG_DATA [DEVICE=cuda] [KINDS=bare|"bare bunny"] [SESSIONS=8] [FRAMES=0:40] [WORKERS="1 2 4 8"] \
+#     bash benchmarks/batch_scale.sh
+# On the GPU machine of benchmarks/gpu_run.sh (its stand-ins for plotly, dash and pyglet are made here too).
+set -uo pipefail
+mkdir -p /tmp/shim/plotly /tmp/shim/dash /tmp/shim/pyglet
+touch /tmp/shim/plotly/__init__.py /tmp/shim/plotly/graph_objects.py
+echo "html = dcc = Dash = None" > /tmp/shim/dash/__init__.py
+printf 'options = {}\nclock = None\nclass window:\n    class Window:\n        pass\n' > /tmp/shim/pyglet/__init__.py
+export PYTHONPATH=/tmp/shim:/tmp/site:$PWD PYTHONUNBUFFERED=1 PHOTOREG_WARP_CACHE=${PHOTOREG_WARP_CACHE:-/tmp/warpcache} PYOPENGL_PLATFORM=${PYOPENGL_PLATFORM:-egl}
+DATA=${DATA:-/tmp/data}; DEVICE=${DEVICE:-cuda}; OUT=${OUT:?set OUT}; mkdir -p "$OUT"
+nvidia-smi --query-gpu=name,driver_version --format=csv,noheader 2>/dev/null; nproc
+KINDS=${KINDS:-bare}; SESSIONS=${SESSIONS:-8}; FRAMES=${FRAMES:-0:40}; WORKERS=${WORKERS:-"1 2 4 8"}
+for kind in $KINDS; do
+  rm -rf /tmp/bs_$kind; mkdir -p /tmp/bs_$kind
+  for i in $(seq 1 $SESSIONS); do
+    { echo "frames = \"$FRAMES\""; echo "device = \"$DEVICE\""
+      echo '[recording]'; echo "path = \"$DATA/recordings/tum_fr1_rpy\""; echo 'format = "tum"'
+      if [ $kind = bunny ]; then sed -n '/^\[\[objects\]\]/,/^albedo/p' sessions/tum_fr1_rpy.toml | sed "s#\${PHOTOREG_DATA}#$DATA#"; fi
+      echo '[output]'; echo "dir = \"/tmp/bout_$kind/s$i\""; } > /tmp/bs_$kind/s$i.toml
+  done
+  for w in $WORKERS; do
+    rm -rf /tmp/bout_$kind /tmp/bo_${kind}_$w
+    (while true; do nvidia-smi --query-gpu=memory.used --format=csv,noheader,nounits 2>/dev/null; sleep 0.5; done) > /tmp/mem_${kind}_$w.txt &
+    sampler=$!
+    t0=$(date +%s.%N)
+    python3 -m photoreg batch /tmp/bs_$kind/*.toml $([ $w = default ] || echo --workers $w) --out /tmp/bo_${kind}_$w > /tmp/batch_${kind}_$w.log 2>&1; rc=$?
+    t1=$(date +%s.%N)
+    kill $sampler 2>/dev/null; wait $sampler 2>/dev/null
+    echo "peak GPU memory MiB: $(sort -n /tmp/mem_${kind}_$w.txt | tail -1)" | tee -a $OUT/batch_mem.txt
+    python3 - "$kind" "$w" "$t0" "$t1" "$rc" /tmp/bo_${kind}_$w/batch_summary.json <<'PY' | tee -a $OUT/batch_scale.jsonl
+import json, sys
+kind, w, t0, t1, rc, p = sys.argv[1], sys.argv[2], float(sys.argv[3]), float(sys.argv[4]), int(sys.argv[5]), sys.argv[6]
+try:
+    d = json.load(open(p))
+except Exception as e:
+    print(json.dumps({"kind": kind, "workers": w, "rc": rc, "error": str(e)})); sys.exit()
+ss = d.get("sessions", d if isinstance(d, list) else [])
+frames = sum(int(s.get("frames") or 0) for s in ss)
+fps = [s.get("frames_per_s") for s in ss]
+walls = [s.get("wall_s") for s in ss]
+import os
+print(json.dumps({"kind": kind, "workers": w, "OPENBLAS_NUM_THREADS": os.environ.get("OPENBLAS_NUM_THREADS"), "rc": rc, "wall_s": round(t1 - t0, 2), "frames": frames,
+                  "aggregate_fps": round(frames / (t1 - t0), 2), "session_fps": fps, "session_wall_s": walls, "status": [s.get("status") for s in ss]}))
+PY
+    tail -2 /tmp/batch_${kind}_$w.log
+  done
+done
