@@ -99,6 +99,7 @@ def test_local_batch_failure_resume_and_changed_session(three_sessions, tmp_path
     summary = json.loads((report / "batch_summary.json").read_text())
     assert [r["status"] for r in summary["sessions"]] == ["skipped", "ok"]
     assert mtimes(tmp_path / "out" / "a") == {k[2:]: v for k, v in before.items() if k.startswith("a/")}
+    assert "batch: 1 session(s) on 1 worker process(es) on the CPU" in capsys.readouterr().err
 
 
 def test_invalid_sessions_reported_before_any_work(tmp_path, recording, capsys):

@@ -14,6 +14,7 @@ from __future__ import annotations
 import multiprocessing as mp
 import os
 import queue
+import sys
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 
 from .runner import BatchProgress, SessionTask, failed_result, run_one
@@ -87,6 +88,8 @@ def run_local(tasks: list[SessionTask], progress: BatchProgress, workers: int | 
     being broken, those still queued)."""
     memory = assign_devices(tasks)
     workers = min(workers or default_workers(os.cpu_count() or 1, memory), len(tasks))
+    print(f"batch: {len(tasks)} session(s) on {workers} worker process(es)"
+          + (f" sharing {len(memory)} GPU(s)" if memory else " on the CPU"), file=sys.stderr, flush=True)
     ctx = mp.get_context("spawn")
     q = ctx.Queue()
     results: dict[int, dict] = {}
