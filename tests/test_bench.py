@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import csv
 import json
+import os
 from pathlib import Path
 
 import numpy as np
@@ -200,3 +201,4 @@ def test_bench_speed_times_the_render_stage_of_a_session(tmp_path):
         else:
             assert res["objects"] == 0 and res["shadows"] is None and "render" not in res["ms_mean"]
         assert res["frames_timed"] == 2 and res["frames_per_s"] > 0
+        assert res["blas_threads"] == os.environ.get("OPENBLAS_NUM_THREADS", "1")   # photoreg's default: one

@@ -6,6 +6,7 @@ Warp/Open3D versions and where fusion ran.
 """
 from __future__ import annotations
 
+import os
 import platform
 import sys
 
@@ -66,6 +67,7 @@ def bench_recording(session: Session, warmup: int = 2) -> dict:
         "warp": wp.__version__, "open3d": o3d.__version__,
         "fusion_on": str(pipe.volume.o3d_device), "recording": session.recording.path,
         "threads": cpu_threads() if pipe.device == "cpu" else 0,
+        "blas_threads": os.environ.get("OPENBLAS_NUM_THREADS"),   # numpy's, as this process loaded it
         "size": f"{rec.intrinsics.width}x{rec.intrinsics.height}", "frames_timed": len(timings),
         "stride": L.stride, "rays": L.rays, "bands": L.bands, "voxel_size": session.reconstruction.voxel_size,
         "normal_smoothing_voxels": session.reconstruction.normal_smoothing_voxels,
@@ -119,7 +121,8 @@ def speed_command(args) -> int:
     mode = (f" asynchronous ({res['estimates']} estimates, lighting {res['lag_frames_mean']} frames old on average, "
             f"solved in {'a child process' if res['solve_process'] else 'the worker thread'})"
             if res["asynchronous"] else "")
-    print(f"{res['device_name']} ({res['device']}, {res['threads']} CPU threads), {res['size']} stride {res['stride']} "
+    print(f"{res['device_name']} ({res['device']}, {res['threads']} CPU threads, BLAS threads {res['blas_threads']}), "
+          f"{res['size']} stride {res['stride']} "
           f"rays {res['rays']} bands {res['bands']}, every {res['every']}{mode}, sun {res['sun']}, "
           f"bounce {res['bounce']} (observed {res['bounce_observed']}), "
           f"history {res['history']}{render}: {res['frames_per_s']} frames/s (median frame: "
