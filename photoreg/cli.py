@@ -195,8 +195,9 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("batch", help="run many session files, each into its own output folder (local workers or Ray)")
     p.add_argument("sessions", nargs="+", help="session files (sessions/*.toml); all are validated before any runs")
     p.add_argument("--workers", type=int,
-                   help="sessions run at once (default: on GPUs one per 2 host cores and 2 GB of GPU memory, "
-                        "else one per CPU core; Ray: CPUs of the local instance it starts)")
+                   help="sessions run at once (default: per GPU one for every 2 host cores of its share, at most one "
+                        "per 2 GB of its memory; without GPUs one per CPU core; Ray: CPUs of the local instance "
+                        "it starts)")
     p.add_argument("--executor", choices=["local", "ray"], default="local",
                    help="local process pool (default) or Ray tasks (extra 'ray')")
     p.add_argument("--ray-address", help="connect to this Ray cluster (default: start a local Ray instance)")
