@@ -84,8 +84,8 @@ def _drain(q, progress: BatchProgress) -> None:
 
 
 def run_local(tasks: list[SessionTask], progress: BatchProgress, workers: int | None = None) -> list[dict]:
-    """Run the sessions in `workers` processes (default: default_workers); results in task order. A worker process that dies fails its session (and, the pool
-    being broken, those still queued)."""
+    """Run the sessions in `workers` processes (default: default_workers); results in task order. A worker
+    process that dies fails its session (and, the pool being broken, those still queued)."""
     memory = assign_devices(tasks)
     workers = min(workers or default_workers(os.cpu_count() or 1, memory), len(tasks))
     print(f"batch: {len(tasks)} session(s) on {workers} worker process(es)"
