@@ -6,15 +6,9 @@
 # every 0.5 s) to $OUT/batch_mem.txt.
 #   OUT=DIR DATA=PHOTOREG_DATA [DEVICE=cuda] [KINDS=bare|"bare bunny"] [SESSIONS=8] [FRAMES=0:40] [WORKERS="1 2 4 8"] \
 #     bash benchmarks/batch_scale.sh
-# On the GPU machine of benchmarks/gpu_run.sh (its stand-ins for plotly, dash and pyglet are made here too).
+# On the GPU machine: `bash benchmarks/gpu_run.sh RECORDING OUTDIR batch` (its environment and stand-ins).
 set -uo pipefail
-mkdir -p /tmp/shim/plotly /tmp/shim/dash /tmp/shim/pyglet
-touch /tmp/shim/plotly/__init__.py /tmp/shim/plotly/graph_objects.py
-echo "html = dcc = Dash = None" > /tmp/shim/dash/__init__.py
-printf 'options = {}\nclock = None\nclass window:\n    class Window:\n        pass\n' > /tmp/shim/pyglet/__init__.py
-export PYTHONPATH=/tmp/shim:/tmp/site:$PWD PYTHONUNBUFFERED=1 PHOTOREG_WARP_CACHE=${PHOTOREG_WARP_CACHE:-/tmp/warpcache} PYOPENGL_PLATFORM=${PYOPENGL_PLATFORM:-egl}
 DATA=${DATA:-/tmp/data}; DEVICE=${DEVICE:-cuda}; OUT=${OUT:?set OUT}; mkdir -p "$OUT"
-nvidia-smi --query-gpu=name,driver_version --format=csv,noheader 2>/dev/null; nproc
 KINDS=${KINDS:-bare}; SESSIONS=${SESSIONS:-8}; FRAMES=${FRAMES:-0:40}; WORKERS=${WORKERS:-"1 2 4 8"}
 for kind in $KINDS; do
   rm -rf /tmp/bs_$kind; mkdir -p /tmp/bs_$kind

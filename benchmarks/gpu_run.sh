@@ -48,6 +48,8 @@
 #              (comma-separated "KIND STRIDE RAYS BANDS", KIND bare, bunny or demo) picks other settings
 #   sweep      `photoreg bench sweep --device cuda` on SWEEP_SCENES (recordings with lighting_gt.json
 #              made here with `photoreg synth`); VOXELS (default 0.01,0.02) restricts it to fit one call
+#   batch      benchmarks/batch_scale.sh: `photoreg batch` over the worker counts WORKERS (its other variables too;
+#              DATA defaults to $PHOTOREG_DATA), into OUTDIR/batch_scale.jsonl and OUTDIR/batch_mem.txt
 set -euo pipefail
 rec=$1; out=$2; shift 2
 # open3d imports plotly/dash for its web visualiser; the GPU image lacks them: empty stand-ins.
@@ -216,6 +218,8 @@ for step in "$@"; do
       [ -f "$out/speed_error.csv" ] || cp benchmarks/speed_error.csv "$out/speed_error.csv"
       python3 -m photoreg bench sweep --recordings $SWEEP_SCENES --device cuda --frames 10 \
         --voxel-sizes "${VOXELS:-0.01,0.02}" --csv "$out/speed_error.csv" --plot "$out/speed_error.png" ;;
+    batch)
+      OUT="$out" DATA="${DATA:-${PHOTOREG_DATA:-/tmp/data}}" bash benchmarks/batch_scale.sh ;;
     *) echo "unknown step $step" >&2; exit 2 ;;
   esac
 done

@@ -178,7 +178,7 @@ def test_thread_settings(monkeypatch):
         launch_rows(_occlusion, (4, 4), [], [], "cpu", threads=0)
 
 
-def test_bench_speed_times_the_render_stage_of_a_session(tmp_path):
+def test_bench_speed_times_the_render_stage_of_a_session(tmp_path, capsys):
     """`photoreg bench speed` on a session file inserts its objects and times the render stage (R_TRV, G-buffer,
     composite) with the rest; on the recording alone there is no render stage (that run also without the
     observed bounce: --no-observed-bounce reaches the session and the figures say so; and with --async: the
@@ -201,4 +201,6 @@ def test_bench_speed_times_the_render_stage_of_a_session(tmp_path):
         else:
             assert res["objects"] == 0 and res["shadows"] is None and "render" not in res["ms_mean"]
         assert res["frames_timed"] == 2 and res["frames_per_s"] > 0
-        assert res["blas_threads"] == os.environ.get("OPENBLAS_NUM_THREADS", "1")   # photoreg's default: one
+        # the BLAS threads this process runs with (photoreg set them at import), in the JSON and the printed line
+        assert res["blas_threads"] == os.environ["OPENBLAS_NUM_THREADS"]
+        assert f"BLAS threads {res['blas_threads']})" in capsys.readouterr().out
