@@ -7,6 +7,7 @@ import json
 import math
 import shutil
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -176,6 +177,67 @@ def test_default_workers_share_each_gpu():
     assert local.default_workers(2, [80 * gib]) == 1
     assert local.default_workers(1, [gib, gib]) == 2           # at least one per GPU
     assert local.default_workers(6, []) == 6
+
+
+def test_gpu_fraction_fits_exactly_that_many_sessions():
+    """A session task's share of a GPU (Ray counts resources in 1e-4 units): `share` of them fit on one, no more."""
+    from photoreg.batch.ray_executor import gpu_fraction
+
+    for share in range(1, 40):
+        units = round(gpu_fraction(share) * 1e4)
+        assert share * units <= 10_000 < (share + 1) * units
+
+
+@pytest.mark.slow
+def test_ray_sessions_share_each_gpu():
+    """On a Ray cluster with GPUs, sessions share each GPU as local workers do: a node of 16 CPUs and one GPU takes
+    8 at once (a probe task reads the GPU's memory; here Warp finds no CUDA device behind the GPU Ray was told of,
+    so the CPUs alone count), --workers spread over the GPUs when this process started Ray with them; Ray runs
+    that many tasks of gpu_fraction at once on the GPU."""
+    ray = pytest.importorskip("ray", reason="Ray is not installed (extra 'ray': pip install 'photoreg[ray]')")
+    from photoreg.batch.ray_executor import gpu_fraction, sessions_per_gpu
+
+    ray.init(num_cpus=16, num_gpus=1, include_dashboard=False, log_to_driver=False)
+    try:
+        assert sessions_per_gpu(ray) == 8
+        assert sessions_per_gpu(ray, workers=3) == 3
+
+        @ray.remote(num_cpus=0)
+        class Gate:
+            def __init__(self):
+                self.started, self.open = 0, False
+
+            def enter(self):
+                self.started += 1
+
+            def count(self):
+                return self.started
+
+            def release(self):
+                self.open = True
+
+            def is_open(self):
+                return self.open
+
+        gate = Gate.remote()
+
+        @ray.remote(num_cpus=0, num_gpus=gpu_fraction(3))
+        def session(g):   # holds its share of the GPU until the gate opens
+            ray.get(g.enter.remote())
+            while not ray.get(g.is_open.remote()):
+                time.sleep(0.05)
+
+        refs = [session.remote(gate) for _ in range(4)]
+        deadline = time.time() + 60
+        while ray.get(gate.count.remote()) < 3 and time.time() < deadline:
+            time.sleep(0.1)
+        time.sleep(2)
+        assert ray.get(gate.count.remote()) == 3   # three at once; the fourth waits for a share of the GPU
+        gate.release.remote()
+        ray.get(refs)
+        assert ray.get(gate.count.remote()) == 4
+    finally:
+        ray.shutdown()
 
 
 def test_photoreg_sets_one_blas_thread_before_numpy_loads():

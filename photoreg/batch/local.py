@@ -39,14 +39,22 @@ def cpu_share(workers: int) -> int:
     return max(1, (os.cpu_count() or 1) // max(workers, 1))
 
 
+def workers_per_gpu(cores: int, memory: int | None) -> int:
+    """Sessions one GPU takes at once: one per CORES_PER_GPU_WORKER of the host `cores` that are its share, at
+    most one per GPU_MEMORY_PER_WORKER of its `memory` (bytes; None: not known), at least one."""
+    n = cores // CORES_PER_GPU_WORKER
+    if memory is not None:
+        n = min(n, memory // GPU_MEMORY_PER_WORKER)
+    return max(n, 1)
+
+
 def default_workers(cores: int, gpu_memory: list[int]) -> int:
-    """Workers when --workers is not given: per GPU (`gpu_memory`: each one's bytes) its share of the `cores` at
-    CORES_PER_GPU_WORKER each, at most one per GPU_MEMORY_PER_WORKER of its memory, at least one; without GPUs
-    one per core."""
+    """Workers when --workers is not given: per GPU (`gpu_memory`: each one's bytes) workers_per_gpu of its share
+    of the `cores`; without GPUs one per core."""
     if not gpu_memory:
         return max(cores, 1)
     share = max(cores // len(gpu_memory), 1)
-    return sum(max(min(share // CORES_PER_GPU_WORKER, m // GPU_MEMORY_PER_WORKER), 1) for m in gpu_memory)
+    return sum(workers_per_gpu(share, m) for m in gpu_memory)
 
 
 def _run(task: SessionTask) -> dict:

@@ -1,16 +1,21 @@
 """Ray executor of `photoreg batch` (optional extra `ray`): one remote task per session.
 
-A task asks for one GPU when the cluster has GPUs and the session may use CUDA (Ray then sets
-CUDA_VISIBLE_DEVICES, so the session runs on "cuda"), else for one CPU. A task whose worker process
-dies is re-run by Ray (max_retries=1); a session that fails with an error is submitted once more.
-Output folders and recordings must be on a filesystem every node sees. Progress comes back through a
-Ray queue actor.
+On a cluster with GPUs a session that may use CUDA asks for 1/k of one GPU (Ray then sets CUDA_VISIBLE_DEVICES,
+so the session runs on "cuda"): k sessions share each GPU, as the local executor's workers do (a pipeline on a
+GPU is bound by its host work; photoreg.batch.local). k is local.workers_per_gpu of the GPU node with the fewest
+CPUs per GPU and of the memory of the GPU a probe task lands on (the cluster's GPUs taken as alike); with a Ray
+instance started here and --workers given, --workers sessions at once in all. Other sessions ask for one CPU.
+A task whose worker process dies is re-run by Ray (max_retries=1); a session that fails with an error is
+submitted once more. Output folders and recordings must be on a filesystem every node sees. Progress comes back
+through a Ray queue actor.
 """
 from __future__ import annotations
 
+import math
 import os
 import sys
 
+from .local import workers_per_gpu
 from .runner import BatchProgress, SessionTask, failed_result, run_one
 
 
@@ -26,7 +31,7 @@ def _import_ray():
 def run_ray(tasks: list[SessionTask], progress: BatchProgress, workers: int | None = None,
             address: str | None = None) -> list[dict]:
     """Run the sessions as Ray tasks; results in task order. Uses the Ray instance already initialised
-    in this process, else connects to `address`, else starts a local one with `workers` CPUs."""
+    in this process, else connects to `address`, else starts a local one with `workers` CPUs (sessions at once)."""
     ray = _import_ray()
     from ray.util.queue import Queue
 
@@ -44,9 +49,15 @@ def run_ray(tasks: list[SessionTask], progress: BatchProgress, workers: int | No
             if t.session.device == "cuda" and not gpus:
                 raise RuntimeError(f"{t.path}: device cuda asked for, but the Ray cluster has no GPUs")
             t.session.device = "cuda" if gpus and t.session.device != "cpu" else "cpu"
+        share = None
+        if any(t.session.device == "cuda" for t in tasks):
+            share = sessions_per_gpu(ray, workers if started and not address else None)
+        print(f"batch: {len(tasks)} session(s) as Ray tasks"
+              + (f", {share} at once per GPU ({gpus:g} GPU(s) in the cluster)" if share else ", one CPU each"),
+              file=sys.stderr, flush=True)
         q = Queue(actor_options={"num_cpus": 0})
         try:
-            return _gather(ray, tasks, progress, q)
+            return _gather(ray, tasks, progress, q, share)
         finally:
             q.shutdown()
     finally:
@@ -54,13 +65,41 @@ def run_ray(tasks: list[SessionTask], progress: BatchProgress, workers: int | No
             ray.shutdown()
 
 
-def _gather(ray, tasks: list[SessionTask], progress: BatchProgress, q) -> list[dict]:
-    """Submit every session, relay progress from `q`, resubmit a failed session once; results in task order."""
+def _gpu_memory() -> int | None:
+    """Bytes of memory of the GPU this task holds, as Warp sees it; None where Warp finds no CUDA device."""
+    from ..device import init_warp
+
+    wp = init_warp()
+    return int(wp.get_device("cuda:0").total_memory) if wp.get_cuda_device_count() else None
+
+
+def sessions_per_gpu(ray, workers: int | None = None) -> int:
+    """Sessions each GPU takes at once (module docstring): --workers spread over the cluster's GPUs when given,
+    else local.workers_per_gpu of the alive GPU node with the fewest CPUs per GPU and of the memory that a probe
+    task holding one GPU reads (none: the CPUs alone)."""
+    nodes = [n["Resources"] for n in ray.nodes() if n.get("Alive") and n["Resources"].get("GPU", 0) >= 1]
+    if not nodes:
+        return 1
+    if workers:
+        return max(math.ceil(workers / sum(int(r["GPU"]) for r in nodes)), 1)
+    cores = min(int(r.get("CPU", 0)) // int(r["GPU"]) for r in nodes)
+    memory = ray.get(ray.remote(num_gpus=1, num_cpus=0)(_gpu_memory).remote())
+    return workers_per_gpu(cores, memory)
+
+
+def gpu_fraction(share: int) -> float:
+    """The GPU a task asks for so that `share` tasks fit on one and no more (Ray counts in 1e-4 units)."""
+    return math.floor(1e4 / share) / 1e4
+
+
+def _gather(ray, tasks: list[SessionTask], progress: BatchProgress, q, share: int | None = None) -> list[dict]:
+    """Submit every session (one on CUDA asks for 1/`share` of a GPU), relay progress from `q`, resubmit a failed
+    session once; results in task order."""
     remote = ray.remote(max_retries=1)(run_one)  # max_retries: Ray re-runs a task whose worker process died
 
     def submit(t: SessionTask):
         # a CPU task holds one Ray CPU: its split kernel launches (photoreg.kernels.launch) use one thread
-        resources = {"num_gpus": 1} if t.session.device == "cuda" else \
+        resources = {"num_gpus": gpu_fraction(share or 1)} if t.session.device == "cuda" else \
             {"num_cpus": 1, "runtime_env": {"env_vars": {"PHOTOREG_CPU_THREADS": "1"}}}
         return remote.options(**resources).remote(t, q)
 
