@@ -195,7 +195,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("batch", help="run many session files, each into its own output folder (local workers or Ray)")
     p.add_argument("sessions", nargs="+", help="session files (sessions/*.toml); all are validated before any runs")
     p.add_argument("--workers", type=int,
-                   help="sessions run at once (default: per GPU one for every 2 host cores of its share, at most one "
+                   help="sessions run at once (default: per GPU one for every host core of its share, at most one "
                         "per 2 GB of its memory; without GPUs one per CPU core; Ray: the same share of each GPU, and "
                         "--workers sets the CPUs, so the sessions at once, of a local instance it starts)")
     p.add_argument("--executor", choices=["local", "ray"], default="local",

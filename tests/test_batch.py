@@ -166,15 +166,16 @@ def test_local_workers_share_the_cores(monkeypatch):
 
 
 def test_default_workers_share_each_gpu():
-    """Without --workers: on GPUs one worker per CORES_PER_GPU_WORKER host cores of each GPU's share, at most
-    one per GPU_MEMORY_PER_WORKER of its memory, at least one per GPU; without GPUs one per core."""
+    """Without --workers: on GPUs one worker per host core of each GPU's share, at most one per
+    GPU_MEMORY_PER_WORKER of its memory, at least one per GPU; without GPUs one per core."""
     from photoreg.batch import local
 
     gib = 1024 ** 3
-    assert local.default_workers(16, [80 * gib]) == 8          # one H100 on a 16-core host
-    assert local.default_workers(16, [80 * gib, 80 * gib]) == 8
+    assert local.default_workers(16, [80 * gib]) == 16         # one H100 on a 16-core host
+    assert local.default_workers(16, [80 * gib, 80 * gib]) == 16
     assert local.default_workers(16, [6 * gib]) == 3           # a small GPU: its memory bounds the count
-    assert local.default_workers(2, [80 * gib]) == 1
+    assert local.default_workers(2, [80 * gib]) == 2
+    assert local.default_workers(3, [80 * gib, 80 * gib]) == 2  # a core each: the share rounds down
     assert local.default_workers(1, [gib, gib]) == 2           # at least one per GPU
     assert local.default_workers(6, []) == 6
 
@@ -191,7 +192,7 @@ def test_gpu_fraction_fits_exactly_that_many_sessions():
 @pytest.mark.slow
 def test_ray_sessions_share_each_gpu():
     """On a Ray cluster with GPUs, sessions share each GPU as local workers do: a node of 16 CPUs and one GPU takes
-    8 at once (a probe task reads the GPU's memory; here Warp finds no CUDA device behind the GPU Ray was told of,
+    16 at once (a probe task reads the GPU's memory; here Warp finds no CUDA device behind the GPU Ray was told of,
     so the CPUs alone count), --workers spread over the GPUs when this process started Ray with them; Ray runs
     that many tasks of gpu_fraction at once on the GPU."""
     ray = pytest.importorskip("ray", reason="Ray is not installed (extra 'ray': pip install 'photoreg[ray]')")
@@ -199,7 +200,7 @@ def test_ray_sessions_share_each_gpu():
 
     ray.init(num_cpus=16, num_gpus=1, include_dashboard=False, log_to_driver=False)
     try:
-        assert sessions_per_gpu(ray) == 8
+        assert sessions_per_gpu(ray) == 16
         assert sessions_per_gpu(ray, workers=3) == 3
 
         @ray.remote(num_cpus=0)

@@ -4,10 +4,11 @@ Sessions that may use CUDA get the CUDA devices Warp sees round-robin ("cuda:K")
 the CPU. Worker processes send per-frame progress through a queue handed to them at start-up.
 
 A pipeline on a GPU is bound by its host work (the robust solves, the light search, the render stage), so
-several workers share each GPU by default (default_workers), each with one BLAS thread (photoreg/__init__.py). On
-one H100 with 16 host cores (benchmarks/gpu.md, "Many sessions on one GPU"), 8 sessions of TUM: 8 workers ran
-32.3 frames/s in all against 12.0 for one, 19.2 against 5.1 with an object inserted; with a threaded BLAS in every
-worker (16 threads each on 16 cores) 8 workers ran 13.3 and 9.6.
+several workers share each GPU by default (default_workers: one per host core), each with one BLAS thread
+(photoreg/__init__.py). On one H100 with 16 host cores (benchmarks/gpu.md, "Many sessions on one GPU" and "One
+worker per host core"), 8 sessions of TUM: 8 workers ran 32.3 frames/s in all against 12.0 for one, 19.2 against
+5.1 with an object inserted (with a threaded BLAS in every worker, 16 threads each, 13.3 and 9.6); 32 sessions of
+100 frames: 16 workers 100.8 and 45.9 frames/s, 8 workers 64.3 and 27.8 (16 sessions), 32 workers 88.6 and 37.5.
 """
 from __future__ import annotations
 
@@ -21,7 +22,6 @@ from .runner import BatchProgress, SessionTask, failed_result, run_one
 
 _progress_queue = None  # set in each worker process by _init_worker
 
-CORES_PER_GPU_WORKER = 2               # host cores per worker sharing a GPU
 GPU_MEMORY_PER_WORKER = 2 * 1024 ** 3  # bytes of GPU memory per worker (TUM at 1 cm: about 1 GB each, context included)
 
 
@@ -40,9 +40,9 @@ def cpu_share(workers: int) -> int:
 
 
 def workers_per_gpu(cores: int, memory: int | None) -> int:
-    """Sessions one GPU takes at once: one per CORES_PER_GPU_WORKER of the host `cores` that are its share, at
-    most one per GPU_MEMORY_PER_WORKER of its `memory` (bytes; None: not known), at least one."""
-    n = cores // CORES_PER_GPU_WORKER
+    """Sessions one GPU takes at once: one per host core of its share (`cores`), at most one per
+    GPU_MEMORY_PER_WORKER of its `memory` (bytes; None: not known), at least one."""
+    n = cores
     if memory is not None:
         n = min(n, memory // GPU_MEMORY_PER_WORKER)
     return max(n, 1)
