@@ -50,6 +50,9 @@
 #              made here with `photoreg synth`); VOXELS (default 0.01,0.02) restricts it to fit one call
 #   batch      benchmarks/batch_scale.sh: `photoreg batch` over the worker counts WORKERS (its other variables too;
 #              DATA defaults to $PHOTOREG_DATA), into OUTDIR/batch_scale.jsonl and OUTDIR/batch_mem.txt
+#   serve      benchmarks/serve_clients.py: SERVE_CLIENTS (default 4) `photoreg stream RECORDING` clients at once through
+#              `photoreg serve --device cuda` with and without --processes, SERVE_ROUNDS (default 1) rounds of
+#              frames SERVE_FRAMES (default 0:40), into OUTDIR/serve_clients.json
 set -euo pipefail
 rec=$1; out=$2; shift 2
 # open3d imports plotly/dash for its web visualiser; the GPU image lacks them: empty stand-ins.
@@ -220,6 +223,9 @@ for step in "$@"; do
         --voxel-sizes "${VOXELS:-0.01,0.02}" --csv "$out/speed_error.csv" --plot "$out/speed_error.png" ;;
     batch)
       OUT="$out" DATA="${DATA:-${PHOTOREG_DATA:-/tmp/data}}" bash benchmarks/batch_scale.sh ;;
+    serve)
+      python3 benchmarks/serve_clients.py "$rec" --device cuda --clients "${SERVE_CLIENTS:-4}" \
+        --frames "${SERVE_FRAMES:-0:40}" --rounds "${SERVE_ROUNDS:-1}" --json "$out/serve_clients.json" ;;
     *) echo "unknown step $step" >&2; exit 2 ;;
   esac
 done

@@ -238,8 +238,10 @@ def test_bad_frames_name_the_problem(recording):
 
 @pytest.fixture(scope="module")
 def server():
-    """The real server on a free loopback port, in a background thread, CPU pipelines."""
-    with ServerThread(ServerConfig(port=0, device="cpu", max_clients=8, queue=2, idle_timeout=60)) as running:
+    """The real server on a free loopback port, in a background thread, CPU pipelines on threads of its own
+    (quicker to start than a process per connection; that mode: test_a_process_per_connection)."""
+    with ServerThread(ServerConfig(port=0, device="cpu", max_clients=8, queue=2, idle_timeout=60,
+                                   processes=False)) as running:
         yield running
 
 
@@ -300,7 +302,7 @@ def test_streamed_composites_equal_the_direct_pipeline_s(tmp_path):
     pixel, what the pipeline composites in-process for that session (photoreg run's composite/NNNNNN.png), the
     frame between estimates (lighting.every, a hello option) included."""
     demo = REPO / "data" / "demo"
-    with ServerThread(ServerConfig(port=0, device="cpu", idle_timeout=60, meshes=str(demo))) as running:
+    with ServerThread(ServerConfig(port=0, device="cpu", idle_timeout=60, meshes=str(demo), processes=False)) as running:
         out = tmp_path / "out"
         assert main(["stream", str(demo), "--url", running.server.url, "--out", str(out), "--session",
                      str(demo / "session.toml"), "--frames", "0:3", "--rays", "16", "--composite", "png",
@@ -337,6 +339,54 @@ def test_four_concurrent_clients(server, recording, tmp_path):
         assert summary["frames_processed"] == N_FRAMES and not summary["errors"]
         for a, b in zip(records, reference):
             np.testing.assert_allclose(a["sh"], b["sh"], atol=2e-7)   # separate sessions, same answers
+
+
+def test_a_process_per_connection(recording, tmp_path):
+    """ServerConfig.processes (the default; `photoreg serve --threads` turns it off): each connection's pipeline runs
+    in a child process of its own. Two clients at once get the direct pipeline's answers; the server holds one child per ready client and
+    none once they have left; a child ignores SIGINT (Ctrl-C reaches the whole process group; the server finishes
+    the frames in work itself); a child that dies ends its own connection (an error naming the frame, then close
+    code 1011) while the other client is served on."""
+    before = set(multiprocessing.active_children())
+
+    def children() -> set:
+        return set(multiprocessing.active_children()) - before
+
+    with ServerThread(ServerConfig(port=0, device="cpu", idle_timeout=60, processes=True)) as running:
+        url, results = running.server.url, {}
+        threads = [threading.Thread(target=lambda k=k: results.__setitem__(k, stream(recording, url, tmp_path / f"c{k}")))
+                   for k in range(2)]
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join(180)
+        direct = direct_lighting(recording)
+        assert sorted(results) == [0, 1]
+        for records, summary in results.values():
+            assert summary["frames_processed"] == N_FRAMES and not summary["errors"]
+            for r, sh in zip(records, direct):
+                np.testing.assert_allclose(r["sh"], sh, atol=2e-7)
+        wait_for(lambda: not children())
+
+        frame = first_frame(recording)
+        with connect(url, K, OPTIONS) as a:
+            (doomed,) = children()
+            os.kill(doomed.pid, signal.SIGINT)
+            a.send_frame(frame)
+            assert a.recv(60)["type"] == "lighting"
+            with connect(url, K, OPTIONS) as b:
+                assert len(children()) == 2
+                os.kill(doomed.pid, signal.SIGKILL)
+                a.send_frame(frame)
+                reply = a.recv(60)
+                assert reply["type"] == "error" and reply["code"] == "pipeline" and reply["frame"] == 0
+                assert "process stopped" in reply["message"]
+                with pytest.raises(ServiceClosed) as closed:
+                    a.recv(60)
+                assert closed.value.code == 1011
+                b.send_frame(frame)
+                assert b.recv(60)["type"] == "lighting"
+        wait_for(lambda: not children())
 
 
 def wait_for(predicate, timeout: float = 30.0) -> None:
@@ -523,7 +573,8 @@ def test_malformed_messages_get_an_error_and_the_connection_stays_usable(ready_w
 def test_limits_clients_token_idle(recording):
     """One client at most, a token, a short idle timeout: extra, unauthorised and idle clients are closed
     with an error naming why."""
-    with ServerThread(ServerConfig(port=0, device="cpu", max_clients=1, token="s3cret", idle_timeout=1.0)) as running:
+    with ServerThread(ServerConfig(port=0, device="cpu", max_clients=1, token="s3cret", idle_timeout=1.0,
+                                   processes=False)) as running:
         url = running.server.url
         with pytest.raises(ProtocolError) as e:
             connect(url, K, OPTIONS, token="guess")
@@ -546,12 +597,15 @@ def test_limits_clients_token_idle(recording):
         assert closed.value.code == 1000 and closed.value.reason == "idle timeout"
 
 
-def test_sigterm_finishes_frames_and_closes_with_1001(recording):
-    """`photoreg serve` as a process: SIGTERM -> the frame in work is answered, clients get bye and close
-    code 1001, the process exits 0."""
+@pytest.mark.parametrize("ctrl_c", [False, True], ids=["sigterm", "sigint-to-the-group"])
+def test_sigterm_finishes_frames_and_closes_with_1001(recording, ctrl_c):
+    """`photoreg serve` as a process (its connections' pipelines in processes of their own): SIGTERM, or SIGINT to
+    its whole process group as Ctrl-C in a terminal sends it (the connection's process too, which ignores it) ->
+    the frame in work is answered, clients get bye and close code 1001, the process exits 0."""
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
     proc = subprocess.Popen([sys.executable, "-m", "photoreg", "serve", "--port", "0", "--device", "cpu"],
-                            cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                            cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            start_new_session=True)
     try:
         lines = []
         while not (m := re.search(r"listening on (ws://\S+)", lines[-1] if lines else "")):
@@ -561,7 +615,10 @@ def test_sigterm_finishes_frames_and_closes_with_1001(recording):
         c.send_frame(first_frame(recording))
         assert c.recv(120)["type"] == "lighting"   # warm: kernels loaded
         c.send_frame(first_frame(recording), 1)
-        proc.send_signal(signal.SIGTERM)
+        if ctrl_c:
+            os.killpg(proc.pid, signal.SIGINT)
+        else:
+            proc.send_signal(signal.SIGTERM)
         replies = []
         with pytest.raises(ServiceClosed) as closed:
             while True:

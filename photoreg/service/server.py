@@ -1,12 +1,13 @@
 """`photoreg serve`: the WebSocket service (protocol 1.1, docs/protocol.md), one pipeline per connection.
 
 A connection runs two tasks on the event loop: a reader (receive, validate, decode the images on a
-helper thread, enqueue) and a worker (run the pipeline on the connection's own thread, reply). The
+helper thread, enqueue) and a worker (run the pipeline in the connection's own process, or with
+ServerConfig.processes off on its own thread: photoreg.service.host; reply). The
 queue between them is bounded and, when a frame arrives while it is full, drops the oldest waiting
 frame ('latest wins'), so a client faster than the pipeline gets fresh answers and memory stays
 bounded: per connection at most `queue` decoded frames, one message being decoded and websockets'
 small receive buffer. A client that does not read its replies stalls only its own worker (a send
-waits for its socket); every other connection keeps its own thread and queue. A session with objects (their
+waits for its socket); every other connection keeps its own pipeline and queue. A session with objects (their
 meshes named in the server's mesh folder, --meshes) gets each frame's composite after its lighting reply.
 """
 from __future__ import annotations
@@ -20,7 +21,7 @@ import os
 import signal
 import threading
 import time
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import BrokenExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -30,11 +31,10 @@ from websockets.exceptions import ConnectionClosed
 from websockets.frames import CloseCode
 
 from ..device import resolve_device
-from ..pipeline import Pipeline
-from ..runner import result_record
 from ..types import Frame, Intrinsics
+from .host import PipelineHost
 from .protocol import (CLIENT_TYPES, Limits, ProtocolError, bye_message, composite_message, decode, decode_frame,
-                       encode, encode_composite, error_message, lighting_message, parse_hello, ready_message)
+                       encode, error_message, lighting_message, parse_hello, ready_message)
 
 log = logging.getLogger("photoreg.serve")
 COUNTS = ("received", "processed", "dropped", "cancelled", "errors")   # frames, per connection and in total
@@ -55,6 +55,8 @@ class ServerConfig:
                                   # the memory a connection costs, so the server's to choose, not the client's
     limits: Limits = field(default_factory=Limits)
     meshes: str | None = None     # folder of the meshes that clients' objects name (None: no objects)
+    processes: bool = True        # each connection's pipeline in a process of its own, else a thread of the server's
+                                  # (photoreg.service.host)
 
     def __post_init__(self) -> None:
         if self.max_clients < 1 or self.queue < 1:
@@ -88,7 +90,7 @@ async def last_words(ws: ServerConnection, msg: dict, code: int, reason: str) ->
 
 
 class Connection:
-    """One client: its session (after hello), its queue, its pipeline thread."""
+    """One client: its session (after hello), its queue, its pipeline's thread or process."""
 
     def __init__(self, server: "PhotoregServer", ws: ServerConnection):
         self.server, self.ws, self.cfg = server, ws, server.config
@@ -96,8 +98,7 @@ class Connection:
         self.wake = asyncio.Event()      # the queue has work
         self.idle = asyncio.Event()      # nothing queued and nothing in the pipeline
         self.idle.set()
-        self.executor = ThreadPoolExecutor(1, thread_name_prefix="photoreg-conn")
-        self.pipeline: Pipeline | None = None
+        self.host = PipelineHost(self.cfg.processes)
         self.intrinsics: Intrinsics | None = None
         self.composite: str | None = None   # the session's composite encoding (hello.composite)
         self.stop_reason: str | None = None
@@ -137,18 +138,13 @@ class Connection:
         finally:
             worker.cancel()
             self.queue.clear()
-            # Hold the client slot until the pipeline thread is free, so that clients that connect and drop
-            # cannot pile up threads beyond max_clients (bounded by the shutdown timeout when stopping).
-            def release() -> None:
-                self.executor.shutdown(True)
-                if self.pipeline is not None:
-                    self.pipeline.close()   # its lighting worker (lighting.asynchronous)
-
-            wait = asyncio.to_thread(release)
+            # Hold the client slot until the pipeline's thread or process is free, so that clients that connect
+            # and drop cannot pile them up beyond max_clients (bounded by the shutdown timeout when stopping).
+            wait = asyncio.to_thread(self.host.close)
             try:
                 await asyncio.wait_for(wait, self.cfg.shutdown_timeout if self.stop_reason else None)
             except TimeoutError:
-                log.warning("%s: pipeline thread still busy after %.0f s; leaving it", self.peer,
+                log.warning("%s: pipeline still busy after %.0f s; leaving it", self.peer,
                             self.cfg.shutdown_timeout)
 
     @property
@@ -218,7 +214,7 @@ class Connection:
         return "shutdown"
 
     async def _hello(self, header: dict) -> str | None:
-        if self.pipeline is not None:
+        if self.host.ready:
             raise ProtocolError("already_ready", "hello was already accepted on this connection: open a new "
                                                  "connection for another session")
         token = self.cfg.token
@@ -230,9 +226,9 @@ class Connection:
         hello = parse_hello(header, self.server.device, self.cfg.limits,
                             Path(self.cfg.meshes) if self.cfg.meshes is not None else None)
         hello.session.reconstruction.block_count = self.cfg.block_count
-        loop = asyncio.get_running_loop()
         try:
-            self.pipeline = await loop.run_in_executor(self.executor, Pipeline, hello.session, hello.intrinsics)
+            await asyncio.wrap_future(self.host.open(hello.session, hello.intrinsics))
+            self.host.ready = True
         except Exception as e:
             log.exception("%s: could not start a pipeline", self.peer)
             raise ProtocolError("pipeline", f"could not start the pipeline: {e}") from None
@@ -244,7 +240,7 @@ class Connection:
         return None
 
     async def _frame(self, header: dict, payload: memoryview, received: float) -> None:
-        if self.pipeline is None:
+        if not self.host.ready:
             raise ProtocolError("not_ready", "frame before hello: send hello first")
         self.counts["received"] += 1
         frame = await asyncio.to_thread(decode_frame, header, payload, self.intrinsics, self.counts["received"] - 1)
@@ -256,14 +252,9 @@ class Connection:
 
     # --------------------------------------------------------------------------------------- worker
 
-    def _process(self, frame: Frame):
-        """(FrameResult, its composite encoded for the client or None), on the connection's thread."""
-        result = self.pipeline.process(frame)
-        return result, None if result.composite is None else encode_composite(result.composite, self.composite)
-
     async def _work(self) -> None:
-        """Process queued frames one at a time on the connection's thread and reply to each."""
-        loop = asyncio.get_running_loop()
+        """Process queued frames one at a time on the connection's thread or process and reply to each; a
+        pipeline process that died ends the connection (error, then close code 1011)."""
         try:
             while True:
                 if not self.queue:
@@ -275,11 +266,18 @@ class Connection:
                 index = item.frame.index
                 started = time.perf_counter()
                 try:
-                    result, image = await loop.run_in_executor(self.executor, self._process, item.frame)
-                    msg = lighting_message(result_record(result), self.counts["dropped"],
+                    record, done, image = await asyncio.wrap_future(self.host.process(item.frame, self.composite))
+                    msg = lighting_message(record, self.counts["dropped"],
                                            (time.perf_counter() - item.received) * 1000.0,
                                            (started - item.received) * 1000.0)
                     text = encode(msg)
+                except BrokenExecutor as e:
+                    log.error("%s: the connection's pipeline process stopped at frame %d: %s", self.peer, index, e)
+                    self.counts["errors"] += 1
+                    await last_words(self.ws, error_message("pipeline", f"frame {index}: the pipeline's process "
+                                                                        "stopped (killed, or out of memory?)", index),
+                                     CloseCode.INTERNAL_ERROR, "pipeline process stopped")
+                    return
                 except Exception as e:
                     log.warning("%s: frame %d failed: %s", self.peer, index, e)
                     self.counts["errors"] += 1
@@ -288,7 +286,7 @@ class Connection:
                 self.counts["processed"] += 1
                 await self.ws.send(text)
                 if image is not None:
-                    await self.ws.send(composite_message(result.index, image, self.composite))
+                    await self.ws.send(composite_message(done, image, self.composite))
         except ConnectionClosed:
             pass
 
@@ -401,8 +399,9 @@ async def serve_until_signal(config: ServerConfig) -> dict:
     loop = asyncio.get_running_loop()
     for sig in (signal.SIGINT, signal.SIGTERM):
         loop.add_signal_handler(sig, stop.set)
-    print(f"photoreg serve: listening on {server.url} (device {server.device}, up to {config.max_clients} clients, "
-          f"queue {config.queue}, token {'required' if config.token else 'off'})", flush=True)
+    print(f"photoreg serve: listening on {server.url} (device {server.device}, up to {config.max_clients} clients"
+          f"{', a process each' if config.processes else ', threads of this process'}, queue {config.queue}, "
+          f"token {'required' if config.token else 'off'})", flush=True)
     await stop.wait()
     log.info("signal received: finishing frames in work and closing connections")
     await server.shutdown()
@@ -416,7 +415,7 @@ def serve_command(args) -> int:
     cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_ERROR)   # clients' corrupt images get error replies
     config = ServerConfig(host=args.host, port=args.port, token=args.token or os.environ.get("PHOTOREG_TOKEN"),
                           device=args.device, max_clients=args.max_clients, queue=args.queue,
-                          idle_timeout=args.idle_timeout, meshes=args.meshes,
+                          idle_timeout=args.idle_timeout, meshes=args.meshes, processes=not args.threads,
                           limits=Limits(max_message_bytes=int(args.max_message_mb * 2**20)))
     totals = asyncio.run(serve_until_signal(config))
     print(f"photoreg serve: stopped after {totals['processed']} frames ({totals['dropped']} dropped, "

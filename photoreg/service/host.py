@@ -1,0 +1,90 @@
+"""Where a connection's pipeline runs (ServerConfig.processes): a thread of its own, or a process of its own.
+
+In one process every connection's pipeline shares the interpreter lock, and much of a frame is Python and small
+numpy calls on the host (on a GPU most of it), so connections take turns. With a process per connection they run
+side by side, as `photoreg batch`'s workers do (benchmarks/gpu.md, "One worker per host core"); a hello then
+costs the child's start (importing photoreg, starting its device: seconds) and each client its own memory (and
+CUDA context). Either way a connection's calls run one at a time, in order, and return futures.
+"""
+from __future__ import annotations
+
+import multiprocessing as mp
+import signal
+from concurrent.futures import Executor, Future, ProcessPoolExecutor, ThreadPoolExecutor
+
+from ..config import Session
+from ..pipeline import Pipeline
+from ..runner import result_record
+from ..types import Frame, Intrinsics
+from .protocol import encode_composite
+
+_pipeline: Pipeline | None = None   # the pipeline of the connection whose process this is (processes mode)
+
+
+def _reply(pipeline: Pipeline, frame: Frame, encoding: str | None) -> tuple[dict, int, bytes | None]:
+    """(lighting record, frame index, the composite encoded for the client or None) of one frame."""
+    result = pipeline.process(frame)
+    image = None if result.composite is None else encode_composite(result.composite, encoding)
+    return result_record(result), result.index, image
+
+
+def _child_start() -> None:
+    """A connection's process ignores SIGINT: Ctrl-C in a terminal reaches the whole process group, and the
+    server's own handler finishes the frames in work and closes the pipelines (a child stopped mid-frame
+    would answer nothing)."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
+def _open_here(session: Session, intrinsics: Intrinsics) -> None:
+    global _pipeline
+    _pipeline = Pipeline(session, intrinsics)
+
+
+def _reply_here(frame: Frame, encoding: str | None) -> tuple[dict, int, bytes | None]:
+    return _reply(_pipeline, frame, encoding)
+
+
+def _close_here() -> None:
+    if _pipeline is not None:
+        _pipeline.close()
+
+
+class PipelineHost:
+    """One connection's pipeline on a thread of its own, or in a spawned child process (`processes`)."""
+
+    def __init__(self, processes: bool):
+        self.processes = processes
+        self.executor: Executor = (ProcessPoolExecutor(1, mp_context=mp.get_context("spawn"), initializer=_child_start)
+                                   if processes else ThreadPoolExecutor(1, thread_name_prefix="photoreg-conn"))
+        self.pipeline: Pipeline | None = None   # thread mode: the pipeline; in a child it lives there
+        self.ready = False
+
+    def open(self, session: Session, intrinsics: Intrinsics) -> Future:
+        """Build the pipeline (a future of None); the connection is ready when it is done."""
+        if self.processes:
+            return self.executor.submit(_open_here, session, intrinsics)
+        return self.executor.submit(self._open_thread, session, intrinsics)
+
+    def _open_thread(self, session: Session, intrinsics: Intrinsics) -> None:
+        self.pipeline = Pipeline(session, intrinsics)
+
+    def process(self, frame: Frame, encoding: str | None) -> Future:
+        """A future of (lighting record, frame index, the encoded composite or None)."""
+        if self.processes:
+            return self.executor.submit(_reply_here, frame, encoding)
+        return self.executor.submit(_reply, self.pipeline, frame, encoding)
+
+    def close(self) -> None:
+        """Wait for the call in work, close the pipeline (its lighting worker and solve process) and end the
+        thread or the child process (one that died is only reaped)."""
+        if self.processes:
+            if self.ready:
+                try:
+                    self.executor.submit(_close_here).result()
+                except Exception:  # noqa: BLE001 - the child is gone (BrokenProcessPool): nothing left to close
+                    pass
+            self.executor.shutdown(wait=True)
+            return
+        self.executor.shutdown(wait=True)
+        if self.pipeline is not None:
+            self.pipeline.close()
