@@ -199,7 +199,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("sessions", nargs="+", help="session files (sessions/*.toml); all are validated before any runs")
     p.add_argument("--workers", type=int,
                    help="sessions run at once (default: per GPU one for every host core of its share, at most one "
-                        "per 2 GB of its memory; without GPUs one per CPU core; Ray: the same share of each GPU, and "
+                        "per 2 GB of its memory; without GPUs one per CPU core; at most one per 2 GB of free host memory; "
+                        "Ray: the same share of each GPU, and "
                         "--workers sets the CPUs, so the sessions at once, of a local instance it starts)")
     p.add_argument("--executor", choices=["local", "ray"], default="local",
                    help="local process pool (default) or Ray tasks (extra 'ray')")

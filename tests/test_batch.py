@@ -167,7 +167,8 @@ def test_local_workers_share_the_cores(monkeypatch):
 
 def test_default_workers_share_each_gpu():
     """Without --workers: on GPUs one worker per host core of each GPU's share, at most one per
-    GPU_MEMORY_PER_WORKER of its memory, at least one per GPU; without GPUs one per core."""
+    GPU_MEMORY_PER_WORKER of its memory, at least one per GPU; without GPUs one per core; either way at most one per
+    HOST_MEMORY_PER_WORKER of the host memory available (a 16-core host with little of it must not run 16)."""
     from photoreg.batch import local
 
     gib = 1024 ** 3
@@ -178,6 +179,11 @@ def test_default_workers_share_each_gpu():
     assert local.default_workers(3, [80 * gib, 80 * gib]) == 2  # a core each: the share rounds down
     assert local.default_workers(1, [gib, gib]) == 2           # at least one per GPU
     assert local.default_workers(6, []) == 6
+    assert local.default_workers(16, [80 * gib], host_memory=9 * gib) == 4
+    assert local.default_workers(6, [], host_memory=5 * gib) == 2
+    assert local.default_workers(6, [], host_memory=gib) == 1
+    assert local.default_workers(6, [], host_memory=64 * gib) == 6
+    assert local.available_memory() > 0   # Linux: MemAvailable
 
 
 def test_gpu_fraction_fits_exactly_that_many_sessions():

@@ -23,6 +23,7 @@ from .runner import BatchProgress, SessionTask, failed_result, run_one
 _progress_queue = None  # set in each worker process by _init_worker
 
 GPU_MEMORY_PER_WORKER = 2 * 1024 ** 3  # bytes of GPU memory per worker (TUM at 1 cm: about 1 GB each, context included)
+HOST_MEMORY_PER_WORKER = 2 * 1024 ** 3  # bytes of host memory per worker (a CPU session of TUM peaked at 0.7 GB)
 
 
 def _init_worker(q, cpu_threads: int) -> None:
@@ -48,13 +49,30 @@ def workers_per_gpu(cores: int, memory: int | None) -> int:
     return max(n, 1)
 
 
-def default_workers(cores: int, gpu_memory: list[int]) -> int:
+def default_workers(cores: int, gpu_memory: list[int], host_memory: int | None = None) -> int:
     """Workers when --workers is not given: per GPU (`gpu_memory`: each one's bytes) workers_per_gpu of its share
-    of the `cores`; without GPUs one per core."""
+    of the `cores`; without GPUs one per core; at most one per HOST_MEMORY_PER_WORKER of the `host_memory`
+    available (bytes; None: not known), at least one."""
     if not gpu_memory:
-        return max(cores, 1)
-    share = max(cores // len(gpu_memory), 1)
-    return sum(workers_per_gpu(share, m) for m in gpu_memory)
+        n = max(cores, 1)
+    else:
+        share = max(cores // len(gpu_memory), 1)
+        n = sum(workers_per_gpu(share, m) for m in gpu_memory)
+    if host_memory is not None:
+        n = min(n, max(host_memory // HOST_MEMORY_PER_WORKER, 1))
+    return n
+
+
+def available_memory() -> int | None:
+    """Bytes of host memory available for new processes (MemAvailable of /proc/meminfo; None where there is none)."""
+    try:
+        with open("/proc/meminfo") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    return None
 
 
 def _run(task: SessionTask) -> dict:
@@ -95,7 +113,7 @@ def run_local(tasks: list[SessionTask], progress: BatchProgress, workers: int | 
     """Run the sessions in `workers` processes (default: default_workers); results in task order. A worker
     process that dies fails its session (and, the pool being broken, those still queued)."""
     memory = assign_devices(tasks)
-    workers = min(workers or default_workers(os.cpu_count() or 1, memory), len(tasks))
+    workers = min(workers or default_workers(os.cpu_count() or 1, memory, available_memory()), len(tasks))
     print(f"batch: {len(tasks)} session(s) on {workers} worker process(es)"
           + (f" sharing {len(memory)} GPU(s)" if memory else " on the CPU"), file=sys.stderr, flush=True)
     ctx = mp.get_context("spawn")
