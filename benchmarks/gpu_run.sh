@@ -51,7 +51,7 @@
 #   batch      benchmarks/batch_scale.sh: `photoreg batch` over the worker counts WORKERS (its other variables too;
 #              DATA defaults to $PHOTOREG_DATA), into OUTDIR/batch_scale.jsonl and OUTDIR/batch_mem.txt
 #   serve      benchmarks/serve_clients.py: SERVE_CLIENTS (default 4) `photoreg stream RECORDING` clients at once through
-#              `photoreg serve --device cuda` with and without --processes, SERVE_ROUNDS (default 1) rounds of
+#              `photoreg serve --device cuda` with and without --threads, SERVE_ROUNDS (default 1) rounds of
 #              frames SERVE_FRAMES (default 0:40), into OUTDIR/serve_clients.json
 set -euo pipefail
 rec=$1; out=$2; shift 2

@@ -1,13 +1,13 @@
-"""Several live clients at once: `photoreg serve` with its connections' pipelines on threads of one process against
-a process each (--processes), the modes alternating over rounds (benchmarks/speed.md, "Several clients at once").
+"""Several live clients at once: `photoreg serve` with its connections' pipelines on threads of one process (--threads)
+against a process each (the default), the modes alternating over rounds (benchmarks/speed.md, "Several clients at once").
 
     python benchmarks/serve_clients.py RECORDING [--clients 2] [--frames 0:20] [--rounds 2] [--device cpu]
         [--json OUT.json] [-- STREAM ARGS...]
 
-Each run starts `photoreg serve --port P --max-clients N` (plus --processes), waits for it to listen, runs N
+Each run starts `photoreg serve --port P --max-clients N` (plus --threads), waits for it to listen, runs N
 `photoreg stream RECORDING` at once (each with its own --out), and reads their summary.json: frames/s in all
 (frames processed over the wall time from the first client's start to the last one's end, hellos included), each
-client's own frames/s and its median latency.
+client's own frames/s, its median latency and its hello's time (connect, hello, ready).
 """
 from __future__ import annotations
 
@@ -33,7 +33,7 @@ def one_run(a, processes: bool, stream_args: list[str], work: Path) -> dict:
     """One server, a.clients streams at once; the figures of the run."""
     port = free_port()
     cmd = [sys.executable, "-m", "photoreg", "serve", "--port", str(port), "--device", a.device,
-           "--max-clients", str(a.clients)] + (["--processes"] if processes else [])
+           "--max-clients", str(a.clients)] + ([] if processes else ["--threads"])
     server = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True,
                               env={**os.environ, "PYTHONUNBUFFERED": "1"})
     try:
@@ -59,6 +59,7 @@ def one_run(a, processes: bool, stream_args: list[str], work: Path) -> dict:
             "frames": frames, "frames_per_s_in_all": round(frames / wall, 2),
             "client_frames_per_s": [s["frames_per_s"] for s in sums],
             "client_latency_p50_ms": [round(s["latency_ms"]["p50"]) for s in sums],
+            "client_hello_ms": [s["hello_ms"] for s in sums],
             "errors": sum(len(s["errors"]) for s in sums)}
 
 

@@ -267,7 +267,7 @@ def test_replay_matches_direct_pipeline(server, recording, tmp_path):
     records, summary = stream(recording, server.server.url, tmp_path / "out")
     assert [r["frame"] for r in records] == list(range(N_FRAMES))
     assert summary["frames_dropped"] == 0 and not summary["errors"] and summary["stopped"] is None
-    assert summary["latency_ms"]["p95"] > 0 and summary["device"] == "cpu"
+    assert summary["latency_ms"]["p95"] > 0 and summary["device"] == "cpu" and summary["hello_ms"] > 0
     for r, sh in zip(records, direct_lighting(recording)):
         assert set(r) == {"frame", "timestamp", "bands", "sh", "dominant_direction", "diagnostics", "timings_ms"}
         np.testing.assert_allclose(r["sh"], sh, atol=2e-7)
@@ -343,8 +343,9 @@ def test_four_concurrent_clients(server, recording, tmp_path):
 
 def test_a_process_per_connection(recording, tmp_path):
     """ServerConfig.processes (the default; `photoreg serve --threads` turns it off): each connection's pipeline runs
-    in a child process of its own. Two clients at once get the direct pipeline's answers; the server holds one child per ready client and
-    none once they have left; a child ignores SIGINT (Ctrl-C reaches the whole process group; the server finishes
+    in a child process of its own, the next one started and warmed ahead (a spare). Two clients at once get the
+    direct pipeline's answers; the server holds one child per ready client plus the spare, the spare alone once
+    they have left, none once it stops; a hello takes the spare; a child ignores SIGINT (Ctrl-C reaches the whole process group; the server finishes
     the frames in work itself); a child that dies ends its own connection (an error naming the frame, then close
     code 1011) while the other client is served on."""
     before = set(multiprocessing.active_children())
@@ -366,16 +367,18 @@ def test_a_process_per_connection(recording, tmp_path):
             assert summary["frames_processed"] == N_FRAMES and not summary["errors"]
             for r, sh in zip(records, direct):
                 np.testing.assert_allclose(r["sh"], sh, atol=2e-7)
-        wait_for(lambda: not children())
+        wait_for(lambda: len(children()) == 1)
 
         frame = first_frame(recording)
+        spare = children()
         with connect(url, K, OPTIONS) as a:
-            (doomed,) = children()
+            (doomed,) = spare
+            assert doomed in children() and len(children()) == 2   # a's process and the next spare
             os.kill(doomed.pid, signal.SIGINT)
             a.send_frame(frame)
             assert a.recv(60)["type"] == "lighting"
             with connect(url, K, OPTIONS) as b:
-                assert len(children()) == 2
+                assert len(children()) == 3
                 os.kill(doomed.pid, signal.SIGKILL)
                 a.send_frame(frame)
                 reply = a.recv(60)
@@ -386,7 +389,8 @@ def test_a_process_per_connection(recording, tmp_path):
                 assert closed.value.code == 1011
                 b.send_frame(frame)
                 assert b.recv(60)["type"] == "lighting"
-        wait_for(lambda: not children())
+        wait_for(lambda: len(children()) == 1)
+    wait_for(lambda: not children())   # the server's stop closes the spare too
 
 
 def wait_for(predicate, timeout: float = 30.0) -> None:

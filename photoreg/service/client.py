@@ -276,8 +276,10 @@ def stream_command(args) -> int:
     out = Path(args.out) if args.out else None
     skipped: list[dict] = []
     progress = Progress(len(indices), args.quiet)
+    t_hello = time.perf_counter()
     client = connect(args.url, rec.intrinsics, options, args.token or os.environ.get("PHOTOREG_TOKEN"),
                      composite=args.composite)
+    hello_ms = round((time.perf_counter() - t_hello) * 1000.0, 1)   # connect, hello, ready
     frames = iter_frames(rec, indices, on_error=lambda i, msg: skipped.append({"frame": i, "error": msg}))
     partial = None
     if out is not None:
@@ -307,7 +309,7 @@ def stream_command(args) -> int:
         progress.close()
         if partial is not None:
             partial.close()
-    summary = {"recording": str(rec.path), "url": args.url, **summary, "frames_skipped": skipped}
+    summary = {"recording": str(rec.path), "url": args.url, "hello_ms": hello_ms, **summary, "frames_skipped": skipped}
     if out is not None:
         os.replace(out / "lighting.jsonl.partial", out / "lighting.jsonl")
         write_json(out / "summary.json", summary)

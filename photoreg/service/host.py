@@ -2,9 +2,10 @@
 
 In one process every connection's pipeline shares the interpreter lock, and much of a frame is Python and small
 numpy calls on the host (on a GPU most of it), so connections take turns. With a process per connection they run
-side by side, as `photoreg batch`'s workers do (benchmarks/gpu.md, "One worker per host core"); a hello then
-costs the child's start (importing photoreg, starting its device: seconds) and each client its own memory (and
-CUDA context). Either way a connection's calls run one at a time, in order, and return futures.
+side by side, as `photoreg batch`'s workers do (benchmarks/gpu.md, "One worker per host core"), each client with
+its own memory (and CUDA context). A process's start (importing photoreg, its device, a first pipeline: 1.9 s on the
+2-core CPU, more with CUDA) is paid ahead of a hello: the server keeps one spare process warmed (warm()) for the
+next connection. Either way a connection's calls run one at a time, in order, and return futures.
 """
 from __future__ import annotations
 
@@ -18,6 +19,7 @@ from ..runner import result_record
 from ..types import Frame, Intrinsics
 from .protocol import encode_composite
 
+WARM_INTRINSICS = Intrinsics(64, 48, 60.0, 60.0, 31.5, 23.5, 1000.0)
 _pipeline: Pipeline | None = None   # the pipeline of the connection whose process this is (processes mode)
 
 
@@ -33,6 +35,14 @@ def _child_start() -> None:
     server's own handler finishes the frames in work and closes the pipelines (a child stopped mid-frame
     would answer nothing)."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
+def _warm_here(device: str) -> None:
+    """A throwaway pipeline on `device`: the first one in a process loads the kernels (about 1 s on the CPU), a
+    hello's then takes about 0.1 s."""
+    session = Session(device=device)
+    session.reconstruction.block_count = 16
+    Pipeline(session, WARM_INTRINSICS).close()
 
 
 def _open_here(session: Session, intrinsics: Intrinsics) -> None:
@@ -59,10 +69,19 @@ class PipelineHost:
         self.pipeline: Pipeline | None = None   # thread mode: the pipeline; in a child it lives there
         self.ready = False
 
+    def warm(self, device: str) -> Future:
+        """Start the child process now and its device (processes mode): a hello then only builds the pipeline."""
+        return self.executor.submit(_warm_here, device)
+
     def open(self, session: Session, intrinsics: Intrinsics) -> Future:
         """Build the pipeline (a future of None); the connection is ready when it is done."""
         if self.processes:
-            return self.executor.submit(_open_here, session, intrinsics)
+            try:
+                return self.executor.submit(_open_here, session, intrinsics)
+            except RuntimeError as e:   # multiprocessing: the main module is still being imported
+                raise RuntimeError("a connection's process could not start: a spawned child imports the main script "
+                                   "again, so a script that starts the server at import needs `if __name__ == "
+                                   "\"__main__\":` round that code (or ServerConfig(processes=False))") from e
         return self.executor.submit(self._open_thread, session, intrinsics)
 
     def _open_thread(self, session: Session, intrinsics: Intrinsics) -> None:

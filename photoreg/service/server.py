@@ -98,7 +98,7 @@ class Connection:
         self.wake = asyncio.Event()      # the queue has work
         self.idle = asyncio.Event()      # nothing queued and nothing in the pipeline
         self.idle.set()
-        self.host = PipelineHost(self.cfg.processes)
+        self.host: PipelineHost | None = None   # from hello on (a connection that never says hello costs none)
         self.intrinsics: Intrinsics | None = None
         self.composite: str | None = None   # the session's composite encoding (hello.composite)
         self.stop_reason: str | None = None
@@ -140,7 +140,7 @@ class Connection:
             self.queue.clear()
             # Hold the client slot until the pipeline's thread or process is free, so that clients that connect
             # and drop cannot pile them up beyond max_clients (bounded by the shutdown timeout when stopping).
-            wait = asyncio.to_thread(self.host.close)
+            wait = asyncio.to_thread(self.host.close if self.host is not None else lambda: None)
             try:
                 await asyncio.wait_for(wait, self.cfg.shutdown_timeout if self.stop_reason else None)
             except TimeoutError:
@@ -214,7 +214,7 @@ class Connection:
         return "shutdown"
 
     async def _hello(self, header: dict) -> str | None:
-        if self.host.ready:
+        if self.host is not None:
             raise ProtocolError("already_ready", "hello was already accepted on this connection: open a new "
                                                  "connection for another session")
         token = self.cfg.token
@@ -226,12 +226,15 @@ class Connection:
         hello = parse_hello(header, self.server.device, self.cfg.limits,
                             Path(self.cfg.meshes) if self.cfg.meshes is not None else None)
         hello.session.reconstruction.block_count = self.cfg.block_count
+        self.host = self.server.take_host()   # set first: a connection ended meanwhile still releases it
         try:
             await asyncio.wrap_future(self.host.open(hello.session, hello.intrinsics))
-            self.host.ready = True
         except Exception as e:
             log.exception("%s: could not start a pipeline", self.peer)
+            host, self.host = self.host, None
+            await asyncio.to_thread(host.close)
             raise ProtocolError("pipeline", f"could not start the pipeline: {e}") from None
+        self.host.ready = True
         self.intrinsics, self.composite = hello.intrinsics, hello.composite
         k = hello.intrinsics
         log.info("%s: session started (%dx%d, bands %d, rays %d, stride %d)", self.peer, k.width, k.height,
@@ -240,7 +243,7 @@ class Connection:
         return None
 
     async def _frame(self, header: dict, payload: memoryview, received: float) -> None:
-        if not self.host.ready:
+        if self.host is None or not self.host.ready:
             raise ProtocolError("not_ready", "frame before hello: send hello first")
         self.counts["received"] += 1
         frame = await asyncio.to_thread(decode_frame, header, payload, self.intrinsics, self.counts["received"] - 1)
@@ -301,6 +304,34 @@ class PhotoregServer:
         self.closing = False
         self.totals = collections.Counter()   # over finished connections
         self._ws_server = None
+        self._spare: PipelineHost | None = None   # processes: the next connection's, started and warmed ahead
+        self._warming = None                       # ... the future of its warm-up
+
+    def _new_spare(self) -> None:
+        """Start the next connection's process (ServerConfig.processes) and its device now; best effort: without
+        one a connection starts its own at hello."""
+        if not self.config.processes or self.closing:
+            return
+        spare = PipelineHost(True)
+        try:
+            self._warming = spare.warm(self.device)
+            self._spare = spare
+        except Exception:  # noqa: BLE001 - e.g. a script that starts the server at import (no __main__ guard)
+            log.warning("could not start a spare pipeline process; each connection starts its own", exc_info=True)
+            spare.close()
+
+    def take_host(self) -> PipelineHost:
+        """A connection's pipeline host at its hello: the spare process unless its start failed (and a new spare
+        started), or one of its own."""
+        host, self._spare = self._spare, None
+        if host is not None and self._warming.done() and self._warming.exception() is not None:
+            log.warning("the spare pipeline process failed to start (%s); starting another", self._warming.exception())
+            host.close()
+            host = None
+        if host is None:
+            host = PipelineHost(self.config.processes)
+        self._new_spare()
+        return host
 
     async def start(self) -> None:
         cfg = self.config
@@ -310,6 +341,7 @@ class PhotoregServer:
                         "" if cfg.token else " without a token (set --token or PHOTOREG_TOKEN)")
         self._ws_server = await serve(self._handle, cfg.host, cfg.port, max_size=cfg.limits.max_message_bytes,
                                       max_queue=4, compression=None, close_timeout=SEND_TIMEOUT)
+        self._new_spare()
 
     @property
     def port(self) -> int:
@@ -359,6 +391,9 @@ class PhotoregServer:
         # than the websockets >= 14 that pyproject allows (15.0.1 raised TypeError here; shutdown never finished)
         self._ws_server.close(close_connections=True)
         await self._ws_server.wait_closed()
+        if self._spare is not None:
+            await asyncio.to_thread(self._spare.close)
+            self._spare = None
 
 
 class ServerThread:
