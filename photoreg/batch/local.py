@@ -75,6 +75,14 @@ def available_memory() -> int | None:
     return None
 
 
+def gpu_memory() -> list[int]:
+    """Bytes of memory of each CUDA device Warp sees (none: an empty list)."""
+    from ..device import init_warp
+
+    wp = init_warp()
+    return [int(wp.get_device(f"cuda:{i}").total_memory) for i in range(wp.get_cuda_device_count())]
+
+
 def _run(task: SessionTask) -> dict:
     return run_one(task, _progress_queue)
 
@@ -84,13 +92,8 @@ def assign_devices(tasks: list[SessionTask]) -> list[int]:
     CPU ('auto' falls back to the CPU when there is none, 'cuda' is then an error); returns the memory (bytes)
     of each GPU used (none: an empty list)."""
     wanted = [t for t in tasks if t.session.device != "cpu"]
-    n, memory = 0, []
-    if wanted:
-        from ..device import init_warp
-
-        wp = init_warp()
-        n = wp.get_cuda_device_count()
-        memory = [int(wp.get_device(f"cuda:{i}").total_memory) for i in range(n)]
+    memory = gpu_memory() if wanted else []
+    n = len(memory)
     for k, t in enumerate(wanted):
         if n:
             t.session.device = f"cuda:{k % n}"

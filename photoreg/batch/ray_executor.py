@@ -15,7 +15,7 @@ import math
 import os
 import sys
 
-from .local import workers_per_gpu
+from .local import gpu_memory, workers_per_gpu
 from .runner import BatchProgress, SessionTask, failed_result, run_one
 
 
@@ -67,10 +67,8 @@ def run_ray(tasks: list[SessionTask], progress: BatchProgress, workers: int | No
 
 def _gpu_memory() -> int | None:
     """Bytes of memory of the GPU this task holds, as Warp sees it; None where Warp finds no CUDA device."""
-    from ..device import init_warp
-
-    wp = init_warp()
-    return int(wp.get_device("cuda:0").total_memory) if wp.get_cuda_device_count() else None
+    memory = gpu_memory()
+    return memory[0] if memory else None
 
 
 def sessions_per_gpu(ray, workers: int | None = None) -> int:

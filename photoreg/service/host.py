@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import multiprocessing as mp
 import signal
+import threading
 from concurrent.futures import Executor, Future, ProcessPoolExecutor, ThreadPoolExecutor
 
 from ..config import Session
@@ -20,14 +21,9 @@ from ..types import Frame, Intrinsics
 from .protocol import encode_composite
 
 WARM_INTRINSICS = Intrinsics(64, 48, 60.0, 60.0, 31.5, 23.5, 1000.0)
-_pipeline: Pipeline | None = None   # the pipeline of the connection whose process this is (processes mode)
-
-
-def _reply(pipeline: Pipeline, frame: Frame, encoding: str | None) -> tuple[dict, int, bytes | None]:
-    """(lighting record, frame index, the composite encoded for the client or None) of one frame."""
-    result = pipeline.process(frame)
-    image = None if result.composite is None else encode_composite(result.composite, encoding)
-    return result_record(result), result.index, image
+# The connection's pipeline, on the one thread that runs its calls: the connection's own thread, or the main thread
+# of its own process; thread-local, so the two modes share these functions.
+_local = threading.local()
 
 
 def _child_start() -> None:
@@ -46,17 +42,20 @@ def _warm_here(device: str) -> None:
 
 
 def _open_here(session: Session, intrinsics: Intrinsics) -> None:
-    global _pipeline
-    _pipeline = Pipeline(session, intrinsics)
+    _local.pipeline = Pipeline(session, intrinsics)
 
 
 def _reply_here(frame: Frame, encoding: str | None) -> tuple[dict, int, bytes | None]:
-    return _reply(_pipeline, frame, encoding)
+    """(lighting record, frame index, the composite encoded for the client or None) of one frame."""
+    result = _local.pipeline.process(frame)
+    image = None if result.composite is None else encode_composite(result.composite, encoding)
+    return result_record(result), result.index, image
 
 
 def _close_here() -> None:
-    if _pipeline is not None:
-        _pipeline.close()
+    pipeline = getattr(_local, "pipeline", None)
+    if pipeline is not None:
+        pipeline.close()
 
 
 class PipelineHost:
@@ -66,7 +65,6 @@ class PipelineHost:
         self.processes = processes
         self.executor: Executor = (ProcessPoolExecutor(1, mp_context=mp.get_context("spawn"), initializer=_child_start)
                                    if processes else ThreadPoolExecutor(1, thread_name_prefix="photoreg-conn"))
-        self.pipeline: Pipeline | None = None   # thread mode: the pipeline; in a child it lives there
         self.ready = False
 
     def warm(self, device: str) -> Future:
@@ -75,35 +73,24 @@ class PipelineHost:
 
     def open(self, session: Session, intrinsics: Intrinsics) -> Future:
         """Build the pipeline (a future of None); the connection is ready when it is done."""
-        if self.processes:
-            try:
-                return self.executor.submit(_open_here, session, intrinsics)
-            except RuntimeError as e:   # multiprocessing: the main module is still being imported
-                raise RuntimeError("a connection's process could not start: a spawned child imports the main script "
-                                   "again, so a script that starts the server at import needs `if __name__ == "
-                                   "\"__main__\":` round that code (or ServerConfig(processes=False))") from e
-        return self.executor.submit(self._open_thread, session, intrinsics)
-
-    def _open_thread(self, session: Session, intrinsics: Intrinsics) -> None:
-        self.pipeline = Pipeline(session, intrinsics)
+        try:
+            return self.executor.submit(_open_here, session, intrinsics)
+        except RuntimeError as e:   # multiprocessing: the main module is still being imported
+            if not self.processes:
+                raise
+            raise RuntimeError("a connection's process could not start: a spawned child imports the main script "
+                               "again, so a script that starts the server at import needs `if __name__ == "
+                               "\"__main__\":` round that code (or ServerConfig(processes=False))") from e
 
     def process(self, frame: Frame, encoding: str | None) -> Future:
         """A future of (lighting record, frame index, the encoded composite or None)."""
-        if self.processes:
-            return self.executor.submit(_reply_here, frame, encoding)
-        return self.executor.submit(_reply, self.pipeline, frame, encoding)
+        return self.executor.submit(_reply_here, frame, encoding)
 
     def close(self) -> None:
-        """Wait for the call in work, close the pipeline (its lighting worker and solve process) and end the
-        thread or the child process (one that died is only reaped)."""
-        if self.processes:
-            if self.ready:
-                try:
-                    self.executor.submit(_close_here).result()
-                except Exception:  # noqa: BLE001 - the child is gone (BrokenProcessPool): nothing left to close
-                    pass
-            self.executor.shutdown(wait=True)
-            return
+        """After the calls in work (a hello's included), close the pipeline if one was built (its lighting worker
+        and solve process) and end the thread or the child process (one that died is only reaped)."""
+        try:
+            self.executor.submit(_close_here).result()
+        except Exception:  # noqa: BLE001 - the child is gone (BrokenProcessPool): nothing left to close
+            pass
         self.executor.shutdown(wait=True)
-        if self.pipeline is not None:
-            self.pipeline.close()

@@ -140,12 +140,13 @@ class Connection:
             self.queue.clear()
             # Hold the client slot until the pipeline's thread or process is free, so that clients that connect
             # and drop cannot pile them up beyond max_clients (bounded by the shutdown timeout when stopping).
-            wait = asyncio.to_thread(self.host.close if self.host is not None else lambda: None)
-            try:
-                await asyncio.wait_for(wait, self.cfg.shutdown_timeout if self.stop_reason else None)
-            except TimeoutError:
-                log.warning("%s: pipeline still busy after %.0f s; leaving it", self.peer,
-                            self.cfg.shutdown_timeout)
+            if self.host is not None:
+                try:
+                    await asyncio.wait_for(asyncio.to_thread(self.host.close),
+                                           self.cfg.shutdown_timeout if self.stop_reason else None)
+                except TimeoutError:
+                    log.warning("%s: pipeline still busy after %.0f s; leaving it", self.peer,
+                                self.cfg.shutdown_timeout)
 
     @property
     def peer(self) -> str:
