@@ -50,6 +50,10 @@
 #              made here with `photoreg synth`); VOXELS (default 0.01,0.02) restricts it to fit one call
 #   batch      benchmarks/batch_scale.sh: `photoreg batch` over the worker counts WORKERS (its other variables too;
 #              DATA defaults to $PHOTOREG_DATA), into OUTDIR/batch_scale.jsonl and OUTDIR/batch_mem.txt
+#   run        benchmarks/run_ab.py: `photoreg run` (its files written) of this tree against the package in $OLD,
+#              alternating, RUN_ROUNDS (default 2) rounds, after a warm-up run of each session: the bunny
+#              (sessions/tum_fr1_rpy.toml, RUN_FRAMES, default 0:100) and the demo's session (40 frames), in line and
+#              --async (OUTDIR/run_ab.json)
 #   serve      benchmarks/serve_clients.py: SERVE_CLIENTS (default 4) `photoreg stream RECORDING` clients at once through
 #              `photoreg serve --device cuda` with and without --threads, SERVE_ROUNDS (default 1) rounds of
 #              frames SERVE_FRAMES (default 0:40), into OUTDIR/serve_clients.json
@@ -223,6 +227,13 @@ for step in "$@"; do
         --voxel-sizes "${VOXELS:-0.01,0.02}" --csv "$out/speed_error.csv" --plot "$out/speed_error.png" ;;
     batch)
       OUT="$out" DATA="${DATA:-${PHOTOREG_DATA:-/tmp/data}}" bash benchmarks/batch_scale.sh ;;
+    run)
+      for session in sessions/tum_fr1_rpy.toml data/demo/session.toml; do   # kernels compiled before the timed runs
+        python3 -m photoreg run $session --device cuda --frames 0:4 --async --out /tmp/run_warm --quiet > /dev/null
+      done
+      python3 benchmarks/run_ab.py "$OLD" bunny=sessions/tum_fr1_rpy.toml "bunny_async=sessions/tum_fr1_rpy.toml,--async" \
+        "demo=data/demo/session.toml,--frames 0:40" "demo_async=data/demo/session.toml,--frames 0:40 --async" \
+        --device cuda --frames "${RUN_FRAMES:-0:100}" --rounds "${RUN_ROUNDS:-2}" --json "$out/run_ab.json" ;;
     serve)
       python3 benchmarks/serve_clients.py "$rec" --device cuda --clients "${SERVE_CLIENTS:-4}" \
         --frames "${SERVE_FRAMES:-0:40}" --rounds "${SERVE_ROUNDS:-1}" --json "$out/serve_clients.json" ;;

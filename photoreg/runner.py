@@ -14,9 +14,13 @@ from .config import Session, load_session, parse_frames, validate
 from .io.atomic import write_json
 from .io.images import linear_to_srgb, write_exr, write_png_rgb
 from .io.video import VideoOut, frame_rate
+from .io.writer import OutputWriter
 from .lighting.visualize import latlong, lit_sphere, tonemap
 from .types import FrameResult
 
+# at most this many threads write a run's files (an H100 host, TUM with the bunny, --async: 22-24 frames/s, no frame
+# waited for them)
+WRITER_THREADS = 4
 DEMO_SESSION = Path(__file__).resolve().parents[1] / "data" / "demo" / "session.toml"
 
 
@@ -104,11 +108,19 @@ def write_composite(out: Path, r: FrameResult, lightmap: np.ndarray) -> None:
     write_exr(out / "lightmap" / f"{name}.exr", lightmap)
 
 
+def writer_threads() -> int:
+    """Threads writing a run's files beside the frames: half the threads CPU kernel launches may use (the frames
+    keep the rest; a batch worker's share of the cores), at most WRITER_THREADS, at least one."""
+    from .kernels.launch import cpu_threads
+
+    return max(1, min(WRITER_THREADS, cpu_threads() // 2))
+
+
 def run_session(s: Session, quiet: bool = False, on_frame: Callable[[int, int], None] | None = None) -> dict:
     """Process a session; returns the summary (also written to summary.json).
 
     on_frame(frames done, frames selected) is called after each frame (batch progress from worker processes)."""
-    from .io.recording import iter_frames, open_recording
+    from .io.recording import ReadAhead, iter_frames, open_recording
     from .pipeline import Pipeline
 
     rec = open_recording(s.recording.path, fmt=s.recording.format, undistort=s.recording.undistort)
@@ -128,24 +140,28 @@ def run_session(s: Session, quiet: bool = False, on_frame: Callable[[int, int], 
     video = VideoOut(out / "composite.mp4", rec.intrinsics.width, rec.intrinsics.height, fps) if s.output.video else None
     partial = out / "lighting.jsonl.partial"
     t0 = time.perf_counter()
-    with open(partial, "w") as f:
+    # frames read ahead and files written beside the frames (the video's frames in order, in a thread of their own)
+    reader = ReadAhead(iter_frames(rec, indices, on_error=lambda i, msg: skipped.append({"frame": i, "error": msg})))
+    with open(partial, "w") as f, OutputWriter(writer_threads(), name="photoreg-files") as files, \
+            OutputWriter(1, name="photoreg-video") as frames:
         try:
-            for frame in iter_frames(rec, indices, on_error=lambda i, msg: skipped.append({"frame": i, "error": msg})):
+            for frame in reader:
                 r = pipe.process(frame)
                 results.append(r)
                 f.write(json.dumps(result_record(r)) + "\n")
                 f.flush()
                 k = s.output.pictures_every
                 if k and (len(results) - 1) % k == 0:
-                    write_pictures(out, r, frame.pose)
+                    files.submit(write_pictures, out, r, frame.pose)
                 if r.composite is not None:
-                    write_composite(out, r, pipe.render.last.ratio)
+                    files.submit(write_composite, out, r, pipe.render.last.ratio)
                     if video is not None:
-                        video.write(r.composite)
+                        frames.submit(video.write, r.composite)
                 progress.step(f"frame {frame.index}" + (" (weak)" if r.diagnostics.weak else ""))
                 if on_frame is not None:
                     on_frame(len(results), len(indices))
         finally:
+            reader.close()
             pipe.close()
     progress.close()
     os.replace(partial, out / "lighting.jsonl")
@@ -159,6 +175,8 @@ def run_session(s: Session, quiet: bool = False, on_frame: Callable[[int, int], 
         "recording": s.recording.path, "device": pipe.device, "frames_processed": len(results),
         "frames_skipped": skipped, "wall_s": round(wall, 3),
         "frames_per_s": round(len(results) / wall, 3) if wall > 0 else None,
+        # of wall_s: waiting for frames to be read, and for a free slot of the file writers (0: neither set the pace)
+        "read_wait_s": round(reader.waited_s, 3), "write_wait_s": round(files.waited_s + frames.waited_s, 3),
         "weak_frames": [r.index for r in results if r.diagnostics.weak],
         "objects": len(s.objects), "shadows": s.render.shadows if s.objects else None,
         "video": None if video is None else {"file": video.path.name, "frames": video.frames, "fps": round(fps, 3)},

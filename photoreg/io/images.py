@@ -1,6 +1,7 @@
 """Image I/O and colour transfer: sRGB <-> linear, 8/16-bit PNG, EXR (OpenEXR), all atomic."""
 from __future__ import annotations
 
+import functools
 import os
 from pathlib import Path
 
@@ -25,11 +26,41 @@ def srgb_to_linear(img: np.ndarray) -> np.ndarray:
     return _srgb_eotf(img.astype(np.float32))
 
 
-def linear_to_srgb(img: np.ndarray) -> np.ndarray:
-    """Linear float -> 8-bit sRGB (clipped to [0,1], non-finite values become 0)."""
-    x = np.clip(np.nan_to_num(img.astype(np.float32), nan=0.0, posinf=1.0, neginf=0.0), 0.0, 1.0)
+def _srgb_oetf8(x: np.ndarray) -> np.ndarray:
+    """Linear float32 in [0, 1] -> 8-bit sRGB (IEC 61966-2-1 OETF, rounded): the definition the table follows."""
     y = np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055)
     return np.clip(np.round(y * 255.0), 0, 255).astype(np.uint8)
+
+
+SRGB_BUCKETS = 1 << 20  # linear [0, 1] in this many equal buckets: x * SRGB_BUCKETS is exact in float32
+
+
+@functools.cache
+def _srgb_table() -> tuple[np.ndarray, np.ndarray]:
+    """(code, mixed), one entry per bucket [k, k + 1) / SRGB_BUCKETS (and one for x = 1): the 8-bit code at the
+    bucket's low end, and whether the bucket's high end has another (an 8-bit step inside it: 249 of the 2^20)."""
+    k = np.arange(SRGB_BUCKETS + 1, dtype=np.float64)
+    lo = (k / SRGB_BUCKETS).astype(np.float32)
+    hi = np.minimum(np.nextafter(((k + 1) / SRGB_BUCKETS).astype(np.float32), np.float32(0)), np.float32(1))
+    code = _srgb_oetf8(lo)
+    return code, _srgb_oetf8(hi) != code
+
+
+def linear_to_srgb(img: np.ndarray) -> np.ndarray:
+    """Linear float -> 8-bit sRGB (clipped to [0,1], non-finite values become 0, +inf 255). By table: each value's
+    bucket gives its code, and the few values in a bucket that holds an 8-bit step are converted by the definition
+    (_srgb_oetf8), so every code is the definition's (the whole formula took 2x as long at 640x480: 9-15 against 5-6
+    ms on the 2-core CPU, once per written composite and video frame)."""
+    code, mixed = _srgb_table()
+    x = np.nan_to_num(np.asarray(img, np.float32), nan=0.0, posinf=1.0, neginf=0.0)
+    np.clip(x, 0.0, 1.0, out=x)
+    x *= np.float32(SRGB_BUCKETS)   # a power of two: exact, and floor(x) is the bucket
+    k = x.astype(np.int32)
+    out = np.take(code, k)
+    fix = np.take(mixed, k)
+    if fix.any():
+        out[fix] = _srgb_oetf8(x[fix] / np.float32(SRGB_BUCKETS))
+    return out
 
 
 def _imread(path: str | os.PathLike, flags: int, what: str) -> np.ndarray:

@@ -1,0 +1,122 @@
+"""A run's output path: the sRGB table, files written beside the frames (OutputWriter), frames read ahead
+(ReadAhead), and a run whose writes fail."""
+from __future__ import annotations
+
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from photoreg.config import load_session
+from photoreg.io.images import _srgb_oetf8, linear_to_srgb
+from photoreg.io.recording import ReadAhead
+from photoreg.io.writer import OutputWriter
+from photoreg.runner import run_session
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def _definition(img) -> np.ndarray:
+    """linear_to_srgb by its formula alone: non-finite to 0 / 1, clipped, the OETF rounded."""
+    x = np.clip(np.nan_to_num(np.asarray(img, np.float32), nan=0.0, posinf=1.0, neginf=0.0), 0.0, 1.0)
+    return _srgb_oetf8(x)
+
+
+def test_srgb_table_gives_the_definitions_codes():
+    """The table agrees with the formula everywhere, the values beside each of the 255 code steps included (the
+    buckets that hold a step are converted by the formula; a table without that fix-up gets them wrong)."""
+    codes = np.arange(1, 256) - 0.5
+    y = codes / 255.0
+    steps = np.where(y <= 0.04045, y / 12.92, ((y + 0.055) / 1.055) ** 2.4).astype(np.float32)
+    near = np.concatenate([steps + k * np.spacing(steps) for k in range(-40, 41)])
+    rng = np.random.default_rng(0)
+    x = np.concatenate([near, rng.random(200_000, dtype=np.float32) ** 3,
+                        np.array([0.0, -0.0, 1.0, 1.5, -2.0, np.nan, np.inf, -np.inf, 0.0031308, 1e-40], np.float32)])
+    assert np.array_equal(linear_to_srgb(x), _definition(x))
+    assert np.array_equal(linear_to_srgb(x.astype(np.float64)), _definition(x))   # float64 input: same codes
+    img = rng.random((7, 9, 3)).astype(np.float32)
+    out = linear_to_srgb(img)
+    assert out.dtype == np.uint8 and out.shape == img.shape and np.array_equal(out, _definition(img))
+    assert linear_to_srgb(np.array([np.nan, np.inf, -np.inf], np.float32)).tolist() == [0, 255, 0]
+
+
+def test_writer_runs_jobs_in_order_and_bounds_the_queue():
+    done, gate = [], threading.Event()
+    w = OutputWriter(threads=1, queued=2)
+    w.submit(lambda: (gate.wait(5), done.append(0)))
+    w.submit(done.append, 1)
+    started = time.perf_counter()
+    threading.Timer(0.3, gate.set).start()
+    w.submit(done.append, 2)           # two unfinished: waits for the first to end
+    assert time.perf_counter() - started >= 0.25 and w.waited_s >= 0.25
+    for i in range(3, 20):
+        w.submit(done.append, i)
+    w.close()
+    assert done == list(range(20))
+    with pytest.raises(RuntimeError, match="after close"):
+        w.submit(done.append, 99)
+    with pytest.raises(ValueError, match="threads"):
+        OutputWriter(threads=0)
+
+
+def test_writer_raises_the_first_error_and_keeps_the_jobs_before_it(tmp_path):
+    written = []
+
+    def write(i: int) -> None:
+        if i == 3:
+            raise OSError(f"{tmp_path / 'x.png'}: could not write PNG")
+        time.sleep(0.01)
+        written.append(i)
+
+    w = OutputWriter(threads=2)
+    with pytest.raises(OSError, match="x.png: could not write PNG"):
+        for i in range(50):
+            w.submit(write, i)
+    with pytest.raises(OSError, match="x.png"):
+        w.close()
+    assert {0, 1, 2} <= set(written) and 3 not in written
+    # an error already on its way out is not replaced by the writer's
+    with pytest.raises(KeyError):
+        with OutputWriter(threads=1) as w2:
+            w2.submit(write, 3)
+            time.sleep(0.05)
+            raise KeyError("the caller's")
+
+
+def test_read_ahead_keeps_order_raises_in_place_and_stops():
+    pulled = []
+
+    def frames(n: int, bad: int | None = None):
+        for i in range(n):
+            pulled.append(i)
+            if i == bad:
+                raise ValueError(f"frame {i}: unreadable")
+            yield i
+
+    assert list(ReadAhead(frames(10), depth=3)) == list(range(10))
+    got = []
+    with pytest.raises(ValueError, match="frame 4"):
+        for i in ReadAhead(frames(10, bad=4)):
+            got.append(i)
+    assert got == [0, 1, 2, 3]
+    pulled.clear()
+    reader = ReadAhead(frames(1000), depth=2)
+    for i in reader:
+        if i == 5:
+            break
+    reader.close()
+    assert len(pulled) <= 5 + 1 + 2 + 1   # read at most the queue's depth (and the frame in hand) past the last
+
+
+def test_run_stops_with_the_failed_write_named(tmp_path):
+    """A composite folder that cannot be made (a file is in the way): the run raises that path's error, from the
+    thread that wrote it."""
+    s = load_session(REPO / "data" / "demo" / "session.toml")
+    s.output.dir, s.frames, s.output.pictures_every = str(tmp_path), "0:6", 0
+    s.lighting.rays, s.lighting.stride = 16, 8
+    (tmp_path / "composite").write_text("not a folder")
+    with pytest.raises(OSError, match="composite"):
+        run_session(s, quiet=True)
+    assert (tmp_path / "composite").read_text() == "not a folder"   # nothing written over it
