@@ -99,6 +99,29 @@ def test_gbuffer_renderers_share_one_offscreen_renderer(tmp_path):
     assert np.isclose(big.render(np.eye(4), window=window).coverage.sum(), areas[1])
 
 
+def test_gbuffer_draws_on_one_gl_thread_whatever_thread_asks(tmp_path, monkeypatch):
+    """Every OpenGL call of the process runs on its GL thread: EGL makes a context current in one thread at a time,
+    and on an H100 a G-buffer asked for from a thread other than the one that made the renderer failed with
+    EGL_BAD_ACCESS (two `photoreg serve --threads` connections with objects). Threads in turn get the same G-buffer."""
+    import threading
+
+    import pyrender
+
+    names = []
+    draw = pyrender.OffscreenRenderer.render
+    monkeypatch.setattr(pyrender.OffscreenRenderer, "render",
+                        lambda self, *a, **k: (names.append(threading.current_thread().name), draw(self, *a, **k))[1])
+    g = GBufferRenderer(load_scene([_cube(tmp_path, position=[0.0, 0.0, 2.0], scale=0.3)]), INTR, 2)
+    areas = []
+    for _ in range(3):
+        t = threading.Thread(target=lambda: areas.append(g.render(np.eye(4)).coverage.sum()))
+        t.start()
+        t.join()
+    areas.append(g.render(np.eye(4)).coverage.sum())
+    assert len(set(names)) == 1 and names[0].startswith("photoreg-gl") and len(names) == 4
+    assert len(areas) == 4 and all(np.isclose(a, areas[0]) for a in areas) and areas[0] > 50
+
+
 def test_gbuffer_compiles_its_shader_once(tmp_path, monkeypatch):
     """pyrender keyed its shader programs by a context object that OSMesa makes anew at every call: every G-buffer
     compiled its shader again and kept the old program (258 MB more resident memory over 300 frames of TUM with

@@ -8,12 +8,16 @@ Each subsample is depth-tested against the real surface (real objects occlude vi
 pixel's coverage is the share of its subsamples that show a virtual face, and its attributes come
 from one of those subsamples (exact geometry: the ray meets the face's plane). The render stage asks only
 for the window round the objects' projection (RenderStage.window). One offscreen renderer per size serves
-every G-buffer renderer of the process (_offscreen).
+every G-buffer renderer of the process (_offscreen), and every OpenGL call of the process runs on one thread
+(_on_gl): a GL context is current in one thread at a time, and pyrender's EGL platform asserts that making its
+context current succeeds, which fails while another thread holds it (pipelines in several threads: the server's
+connections with `--threads`).
 """
 from __future__ import annotations
 
 import os
 import threading
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -81,7 +85,18 @@ def _import_pyrender():
     return pyrender
 
 
-_OFFSCREEN: dict[tuple[int, int], tuple[object, threading.Lock, bool]] = {}
+_OFFSCREEN: dict[tuple[int, int], tuple[object, bool]] = {}
+_GL: list[ThreadPoolExecutor] = []   # the process's GL thread, made on first use
+_GL_LOCK = threading.Lock()
+
+
+def _on_gl(job, *args) -> Future:
+    """Run job(*args) on the process's GL thread, where every OpenGL call goes: the offscreen renderers' contexts
+    are made and current there, and pipelines in other threads take turns on it."""
+    with _GL_LOCK:
+        if not _GL:
+            _GL.append(ThreadPoolExecutor(1, thread_name_prefix="photoreg-gl"))
+    return _GL[0].submit(job, *args)
 
 
 class _ContextPrograms:
@@ -105,17 +120,16 @@ class _ContextPrograms:
         self._cache.clear()
 
 
-def _offscreen(pr, width: int, height: int) -> tuple[object, threading.Lock, bool]:
-    """The process's offscreen renderer of this size, its lock, and whether it may change its viewport, made once
-    and never deleted: pyrender's EGL platform terminates the display, which every renderer of a process shares,
-    when one renderer is deleted (the next pipeline's first frame then failed with EGL_NOT_INITIALIZED on an
-    H100); the lock keeps pipelines in other threads (the server's connections) off it while one renders. EGL
-    renders into framebuffer objects of any size; OSMesa would make a new context for every new viewport size
-    (pyrender picks the platform from PYOPENGL_PLATFORM when the renderer is made)."""
+def _offscreen(pr, width: int, height: int) -> tuple[object, bool]:
+    """The process's offscreen renderer of this size and whether it may change its viewport, made once (on the GL
+    thread) and never deleted: pyrender's EGL platform terminates the display, which every renderer of a process
+    shares, when one renderer is deleted (the next pipeline's first frame then failed with EGL_NOT_INITIALIZED on an
+    H100). EGL renders into framebuffer objects of any size; OSMesa would make a new context for every new viewport
+    size (pyrender picks the platform from PYOPENGL_PLATFORM when the renderer is made)."""
     if (width, height) not in _OFFSCREEN:
         gl = pr.OffscreenRenderer(width, height)
         gl._renderer._program_cache = _ContextPrograms(gl._renderer._program_cache)
-        _OFFSCREEN[(width, height)] = (gl, threading.Lock(), os.environ.get("PYOPENGL_PLATFORM") == "egl")
+        _OFFSCREEN[(width, height)] = (gl, os.environ.get("PYOPENGL_PLATFORM") == "egl")
     return _OFFSCREEN[(width, height)]
 
 
@@ -144,13 +158,13 @@ class GBufferRenderer:
         ids = np.arange(1, keep.sum() + 1)
         code = np.stack([ids & 255, (ids >> 8) & 255, (ids >> 16) & 255, np.full_like(ids, 255)], -1)
         self._triangles = tri[keep].reshape(-1, 3).astype(np.float32), np.repeat(code.astype(np.float32) / 255.0, 3, 0)
-        self.gl, self.gl_lock, self.gl_windows = _offscreen(self.pr, self.hi.width, self.hi.height)
-        self._views: dict = {}
+        self.gl, self.gl_windows = _on_gl(_offscreen, self.pr, self.hi.width, self.hi.height).result()
+        self._views: dict = {}   # used on the GL thread alone
 
     def _view(self, size: tuple[int, int]):
-        """(scene, camera, camera node, renderer, lock) drawing a viewport of `size` pixels: with EGL one scene and
-        the frame's renderer serve every size; with OSMesa, whose viewport is its context's, a renderer of that
-        size (_offscreen) and a scene of its own (pyrender binds a mesh to the first context that draws it)."""
+        """(scene, camera, camera node, renderer) drawing a viewport of `size` pixels: with EGL one scene and the
+        frame's renderer serve every size; with OSMesa, whose viewport is its context's, a renderer of that size
+        (_offscreen) and a scene of its own (pyrender binds a mesh to the first context that draws it)."""
         key = None if self.gl_windows else size
         if key not in self._views:
             positions, colors = self._triangles
@@ -160,9 +174,18 @@ class GBufferRenderer:
             # pyrender's pixel centres sit at +0.5 (OpenGL); OpenCV's at integers (cx, cy are set per render)
             cam = self.pr.IntrinsicsCamera(self.hi.fx, self.hi.fy, self.hi.cx + 0.5, self.hi.cy + 0.5, Z_NEAR, Z_FAR)
             node = scene.add(cam, pose=np.eye(4))
-            gl, lock = (self.gl, self.gl_lock) if self.gl_windows else _offscreen(self.pr, *size)[:2]
-            self._views[key] = scene, cam, node, gl, lock
+            gl = self.gl if self.gl_windows else _offscreen(self.pr, *size)[0]
+            self._views[key] = scene, cam, node, gl
         return self._views[key]
+
+    def _draw(self, pose: np.ndarray, size: tuple[int, int], vx: int, vy: int) -> tuple[np.ndarray, np.ndarray]:
+        """(colour, depth buffer) of the view from `pose` into a viewport of `size` whose corner is the supersampled
+        pixel (vx, vy); on the GL thread."""
+        scene, cam, node, gl = self._view(size)
+        scene.set_pose(node, pose @ OPENCV_TO_OPENGL)
+        gl.viewport_width, gl.viewport_height = size
+        cam.cx, cam.cy = self.hi.cx + 0.5 - vx, self.hi.cy + 0.5 - vy
+        return gl.render(scene, flags=self.pr.RenderFlags.FLAT)
 
     def render(self, pose_c2w: np.ndarray, real_depth: np.ndarray | None = None, tolerance: float = 0.005,
                window: tuple[int, int, int, int] | None = None) -> GBuffer:
@@ -184,12 +207,7 @@ class GBufferRenderer:
             vx, vy, size = x0 * s, y0 * s, (min(_pow2(w * s), W * s), min(_pow2(h * s), H * s))
         else:
             vx, vy, size = 0, 0, (W * s, H * s)
-        scene, cam, node, gl, lock = self._view(size)
-        scene.set_pose(node, pose @ OPENCV_TO_OPENGL)
-        with lock:
-            gl.viewport_width, gl.viewport_height = size
-            cam.cx, cam.cy = self.hi.cx + 0.5 - vx, self.hi.cy + 0.5 - vy
-            color, zbuf = gl.render(scene, flags=self.pr.RenderFlags.FLAT)
+        color, zbuf = _on_gl(self._draw, pose, size, vx, vy).result()
         color, zbuf = color[:h * s, :w * s], zbuf[:h * s, :w * s]
         code = color[..., :3].astype(np.int64)
         face = (code[..., 0] | (code[..., 1] << 8) | (code[..., 2] << 16)) - 1
