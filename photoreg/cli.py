@@ -219,7 +219,7 @@ def main(argv: list[str] | None = None) -> int:
     module, func = HANDLERS[args.command].split(":")
     try:
         return int(getattr(importlib.import_module(module), func)(args) or 0)
-    except (ValueError, FileNotFoundError, RuntimeError) as e:
+    except (ValueError, OSError, RuntimeError) as e:   # OSError: a file that cannot be read or written, named
         print(f"photoreg {args.command}: error: {e}", file=sys.stderr)
         return 2
 

@@ -120,3 +120,14 @@ def test_run_stops_with_the_failed_write_named(tmp_path):
     with pytest.raises(OSError, match="composite"):
         run_session(s, quiet=True)
     assert (tmp_path / "composite").read_text() == "not a folder"   # nothing written over it
+
+
+def test_cli_names_the_file_it_cannot_write(tmp_path, capsys):
+    """`photoreg run` stops with a one-line error naming the path (exit code 2), not a traceback."""
+    from photoreg.cli import main
+
+    (tmp_path / "composite").write_text("not a folder")
+    assert main(["run", str(REPO / "data" / "demo" / "session.toml"), "--out", str(tmp_path), "--frames", "0:3",
+                 "--rays", "16", "--stride", "8", "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert "photoreg run: error:" in err and str(tmp_path / "composite") in err and "Traceback" not in err
