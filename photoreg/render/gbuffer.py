@@ -6,7 +6,8 @@ face indices as flat colours (pyrender resolves its 4x MSAA into the colour buff
 at an edge is caught by checking it against the depth buffer: the face's plane must give the same z).
 Each subsample is depth-tested against the real surface (real objects occlude virtual ones); the
 pixel's coverage is the share of its subsamples that show a virtual face, and its attributes come
-from one of those subsamples (exact geometry: the ray meets the face's plane). The render stage asks only
+from one of those subsamples (exact geometry: the ray meets the face's plane): that resolve is one Warp kernel
+on the renderer's device (photoreg.kernels.gbuffer). The render stage asks only
 for the window round the objects' projection (RenderStage.window). One offscreen renderer per size serves
 every G-buffer renderer of the process (_offscreen), and every OpenGL call of the process runs on one thread
 (_on_gl): a GL context is current in one thread at a time, and pyrender's EGL platform asserts that making its
@@ -24,6 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from photoreg.io.poses import check_pose
+from photoreg.kernels.gbuffer import Faces, resolve
 from photoreg.render.scene import VirtualScene
 from photoreg.types import Intrinsics
 
@@ -139,9 +141,10 @@ def _pow2(n: int) -> int:
 
 
 class GBufferRenderer:
-    """Rasterises one virtual scene for one camera model; keeps its GL context across frames."""
+    """Rasterises one virtual scene for one camera model; keeps its GL context across frames. `device`: where the
+    draw is resolved (the pipeline's)."""
 
-    def __init__(self, scene: VirtualScene, intr: Intrinsics, supersample: int = 2):
+    def __init__(self, scene: VirtualScene, intr: Intrinsics, supersample: int = 2, device: str = "cpu"):
         if supersample < 1:
             raise ValueError(f"GBufferRenderer: supersample must be >= 1, got {supersample}")
         self.pr = _import_pyrender()
@@ -155,6 +158,7 @@ class GBufferRenderer:
         self.p0 = tri[keep, 0]
         self.face_normal = n[keep] / length[keep]
         self.face_albedo = np.stack([o.albedo for o in scene.objects])[owner[keep]]
+        self.faces = Faces(self.p0, self.face_normal, self.face_albedo, device)   # the resolve's (its device)
         ids = np.arange(1, keep.sum() + 1)
         code = np.stack([ids & 255, (ids >> 8) & 255, (ids >> 16) & 255, np.full_like(ids, 255)], -1)
         self._triangles = tri[keep].reshape(-1, 3).astype(np.float32), np.repeat(code.astype(np.float32) / 255.0, 3, 0)
@@ -203,54 +207,20 @@ class GBufferRenderer:
         # (at most the frame's; the window in its top-left corner): EGL resizes its framebuffer only when that
         # size changes, and OSMesa, which makes a context per size, gets a renderer per size of the few there
         # are (TUM with the bunny on this CPU: 18-25 ms a frame for the whole 1280 x 960 supersampled frame before).
-        if h > 0 and w > 0:
-            vx, vy, size = x0 * s, y0 * s, (min(_pow2(w * s), W * s), min(_pow2(h * s), H * s))
-        else:
-            vx, vy, size = 0, 0, (W * s, H * s)
-        color, zbuf = _on_gl(self._draw, pose, size, vx, vy).result()
-        color, zbuf = color[:h * s, :w * s], zbuf[:h * s, :w * s]
-        code = color[..., :3].astype(np.int64)
-        face = (code[..., 0] | (code[..., 1] << 8) | (code[..., 2] << 16)) - 1
-        hit = zbuf > 0
-        # exact z of each subsample's ray on its face's plane; mismatches are blended (invalid) indices
-        v, u = np.nonzero(hit & (face >= 0) & (face < len(self.p0)))
-        f = face[v, u]
-        ray_c = np.stack([(u + x0 * s - self.hi.cx) / self.hi.fx, (v + y0 * s - self.hi.cy) / self.hi.fy,
-                          np.ones(len(u))], -1)
-        R, t = pose[:3, :3], pose[:3, 3]
-        ray_w = ray_c @ R.T
-        nf = self.face_normal[f]
-        denom = np.einsum("ij,ij->i", nf, ray_w)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            z = np.einsum("ij,ij->i", nf, self.p0[f] - t) / denom
-        ok = np.isfinite(z) & (np.abs(z - zbuf[v, u]) <= 2e-3 + 2e-3 * zbuf[v, u])
-        v, u, f, z, ray_w, nf, denom = v[ok], u[ok], f[ok], z[ok], ray_w[ok], nf[ok], denom[ok]
+        real = np.zeros((h, w), np.float32)   # 0: no real surface known
         if real_depth is not None:
-            real = np.asarray(real_depth, np.float32)
-            if real.shape != (H, W):
-                raise ValueError(f"GBufferRenderer.render: real_depth is {real.shape}, expected {(H, W)}")
-            rd = np.repeat(np.repeat(real[y0:y1, x0:x1], s, 0), s, 1)
-            hidden = (rd > 0) & np.isfinite(rd) & (zbuf > rd + tolerance)
-            hit &= ~hidden
-            keep = ~hidden[v, u]
-            v, u, f, z, ray_w, nf, denom = v[keep], u[keep], f[keep], z[keep], ray_w[keep], nf[keep], denom[keep]
-        # one representative subsample per pixel of the window: the last valid one written wins
-        pix = (v // s) * w + u // s
-        out_depth = np.zeros(h * w, np.float32)
-        out_pos = np.zeros((h * w, 3), np.float32)
-        out_n = np.zeros((h * w, 3), np.float32)
-        out_alb = np.zeros((h * w, 3), np.float32)
-        out_depth[pix] = z
-        out_pos[pix] = t + ray_w * z[:, None]
-        out_n[pix] = nf * -np.sign(denom)[:, None]   # face the camera
-        out_alb[pix] = self.face_albedo[f]
-        shown = np.zeros(h * w, bool)
-        shown[pix] = True
+            real_depth = np.asarray(real_depth, np.float32)
+            if real_depth.shape != (H, W):
+                raise ValueError(f"GBufferRenderer.render: real_depth is {real_depth.shape}, expected {(H, W)}")
+            real = real_depth[y0:y1, x0:x1]
+        if h == 0 or w == 0:   # nothing to draw
+            empty = np.zeros((h, w, 3), np.float32)
+            return GBuffer(np.zeros((H, W), np.float32), (x0, y0, x1, y1), np.zeros((h, w), np.float32), empty,
+                           empty.copy(), empty.copy())
+        size = (min(_pow2(w * s), W * s), min(_pow2(h * s), H * s))
+        color, zbuf = _on_gl(self._draw, pose, size, x0 * s, y0 * s).result()
+        cover, depth, position, normal, albedo = resolve(color[:h * s, :w * s, :3], zbuf[:h * s, :w * s], real, s,
+                                                         (x0 * s, y0 * s), self.hi, pose, self.faces, tolerance)
         coverage = np.zeros((H, W), np.float32)
-        hits = np.zeros((h, w), np.uint16)   # the pixel's subsamples that show a face: s * s strided views summed
-        for i in range(s):                   # (a tenth of the time of a mean over the reshaped axes)
-            for j in range(s):
-                hits += hit[i::s, j::s]
-        coverage[y0:y1, x0:x1] = np.where(shown.reshape(h, w), hits / np.float32(s * s), 0.0)
-        return GBuffer(coverage, (x0, y0, x1, y1), out_depth.reshape(h, w), out_pos.reshape(h, w, 3),
-                       out_n.reshape(h, w, 3), out_alb.reshape(h, w, 3))
+        coverage[y0:y1, x0:x1] = cover
+        return GBuffer(coverage, (x0, y0, x1, y1), depth, position, normal, albedo)

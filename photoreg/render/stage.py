@@ -28,7 +28,7 @@ class RenderStage:
         self.renderer = get_renderer(session.render.shadows)
         self.scene = load_scene(session.objects)
         self.virtual = voxel_grid(self.scene, session.reconstruction.voxel_size, device)
-        self.gbuffer = GBufferRenderer(self.scene, intrinsics, SUPERSAMPLE)
+        self.gbuffer = GBufferRenderer(self.scene, intrinsics, SUPERSAMPLE, device)
         self._dirs: dict[int, tuple[np.ndarray, np.ndarray]] = {}
         self.last: Layers | None = None
         self.last_input: RenderInput | None = None
