@@ -91,24 +91,25 @@ def _resolve_reference(g, pose, color, zbuf, real, window, tolerance):
     position, normal and albedo."""
     s, (x0, y0, x1, y1) = g.s, window
     h, w = y1 - y0, x1 - x0
+    p0, normals, albedos = g.faces.p0.numpy(), g.faces.normal.numpy(), g.faces.albedo.numpy()
     code = color[..., :3].astype(np.int64)
     face = (code[..., 0] | (code[..., 1] << 8) | (code[..., 2] << 16)) - 1
     rd = np.repeat(np.repeat(real, s, 0), s, 1)
     hit = (zbuf > 0) & ~((rd > 0) & np.isfinite(rd) & (zbuf > rd + np.float32(tolerance)))
-    v, u = np.nonzero(hit & (face >= 0) & (face < len(g.p0)))
+    v, u = np.nonzero(hit & (face >= 0) & (face < len(p0)))
     f = face[v, u]
     ray = np.stack([(u + x0 * s - g.hi.cx) / g.hi.fx, (v + y0 * s - g.hi.cy) / g.hi.fy, np.ones(len(u))], -1)
     ray = ray @ pose[:3, :3].T
-    nf = g.face_normal[f]
+    nf = normals[f]
     den = np.einsum("ij,ij->i", nf, ray)
     with np.errstate(divide="ignore", invalid="ignore"):
-        z = np.einsum("ij,ij->i", nf, g.p0[f] - pose[:3, 3]) / den
+        z = np.einsum("ij,ij->i", nf, p0[f] - pose[:3, 3]) / den
     ok = np.isfinite(z) & (np.abs(z - zbuf[v, u]) <= 2e-3 + 2e-3 * zbuf[v, u])
     v, u, f, z, ray, nf, den = v[ok], u[ok], f[ok], z[ok], ray[ok], nf[ok], den[ok]
     pix = (v // s) * w + u // s            # sequential: the last valid subsample of a pixel wins
     out = [np.zeros(h * w, np.float32)] + [np.zeros((h * w, 3), np.float32) for _ in range(3)]
     out[0][pix], out[1][pix] = z, pose[:3, 3] + ray * z[:, None]
-    out[2][pix], out[3][pix] = nf * -np.sign(den)[:, None], g.face_albedo[f]
+    out[2][pix], out[3][pix] = nf * -np.sign(den)[:, None], albedos[f]
     shown = np.zeros(h * w, bool)
     shown[pix] = True
     cover = np.where(shown.reshape(h, w), hit.reshape(h, s, w, s).sum(axis=(1, 3)) / (s * s), 0.0)

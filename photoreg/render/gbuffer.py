@@ -155,10 +155,8 @@ class GBufferRenderer:
         n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
         length = np.linalg.norm(n, axis=1, keepdims=True)
         keep = length[:, 0] > 0                                       # degenerate faces cannot be hit
-        self.p0 = tri[keep, 0]
-        self.face_normal = n[keep] / length[keep]
-        self.face_albedo = np.stack([o.albedo for o in scene.objects])[owner[keep]]
-        self.faces = Faces(self.p0, self.face_normal, self.face_albedo, device)   # the resolve's (its device)
+        albedo = np.stack([o.albedo for o in scene.objects])[owner[keep]]
+        self.faces = Faces(tri[keep, 0], n[keep] / length[keep], albedo, device)   # the resolve's, on its device
         ids = np.arange(1, keep.sum() + 1)
         code = np.stack([ids & 255, (ids >> 8) & 255, (ids >> 16) & 255, np.full_like(ids, 255)], -1)
         self._triangles = tri[keep].reshape(-1, 3).astype(np.float32), np.repeat(code.astype(np.float32) / 255.0, 3, 0)
