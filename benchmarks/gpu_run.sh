@@ -54,6 +54,10 @@
 #              alternating, RUN_ROUNDS (default 2) rounds, after a warm-up run of each session: the bunny
 #              (sessions/tum_fr1_rpy.toml, RUN_FRAMES, default 0:100) and the demo's session (40 frames), in line and
 #              --async (OUTDIR/run_ab.json)
+#   liveab     benchmarks/live_ab.py: `photoreg serve --device cuda` and `photoreg stream RECORDING` of this tree against
+#              the package in OLD, alternating, LIVE_ROUNDS (default 2) rounds of frames LIVE_FRAMES (default 0:100): TUM
+#              with the bunny (sessions/tum_fr1_rpy.toml) --async and in line, TUM alone --async (OUTDIR/live_ab.json);
+#              then benchmarks/live_split.py through this tree's server, a process per connection and --threads
 #   serve      benchmarks/serve_clients.py: SERVE_CLIENTS (default 4) `photoreg stream RECORDING` clients at once through
 #              `photoreg serve --device cuda` with and without --threads, SERVE_ROUNDS (default 1) rounds of
 #              frames SERVE_FRAMES (default 0:40), into OUTDIR/serve_clients.json
@@ -234,6 +238,21 @@ for step in "$@"; do
       python3 benchmarks/run_ab.py "$OLD" bunny=sessions/tum_fr1_rpy.toml "bunny_async=sessions/tum_fr1_rpy.toml,--async" \
         "demo=data/demo/session.toml,--frames 0:40" "demo_async=data/demo/session.toml,--frames 0:40 --async" \
         --device cuda --frames "${RUN_FRAMES:-0:100}" --rounds "${RUN_ROUNDS:-2}" --json "$out/run_ab.json" ;;
+    liveab)
+      python3 -m photoreg run sessions/tum_fr1_rpy.toml --device cuda --frames 0:4 --out /tmp/run_warm --quiet > /dev/null
+      python3 benchmarks/live_ab.py "$OLD" "$rec" "bunny_async=sessions/tum_fr1_rpy.toml,--async" \
+        "bunny=sessions/tum_fr1_rpy.toml" "bare_async=,--async" --device cuda --meshes "$PHOTOREG_DATA/meshes" \
+        --frames "${LIVE_FRAMES:-0:100}" --rounds "${LIVE_ROUNDS:-2}" --json "$out/live_ab.json"
+      for mode in "" --threads; do   # where the time goes (benchmarks/live_split.py), this tree's server
+        python3 -m photoreg serve --device cuda --port 8771 --meshes "$PHOTOREG_DATA/meshes" $mode > /tmp/split.log 2>&1 &
+        srv=$!
+        for i in $(seq 90); do grep -q "listening on" /tmp/split.log && break; sleep 1; done
+        for session in sessions/tum_fr1_rpy.toml ""; do
+          echo "serve $mode, ${session:-no objects}: $(python3 benchmarks/live_split.py ws://127.0.0.1:8771 "$rec" \
+            ${session:+--session $session} 2>/dev/null)" | tee -a "$out/live_split.txt"
+        done
+        kill $srv; wait $srv || true
+      done ;;
     serve)
       python3 benchmarks/serve_clients.py "$rec" --device cuda --clients "${SERVE_CLIENTS:-4}" \
         --frames "${SERVE_FRAMES:-0:40}" --rounds "${SERVE_ROUNDS:-1}" --json "$out/serve_clients.json" ;;

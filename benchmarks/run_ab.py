@@ -41,7 +41,7 @@ def largest_difference(a: Path, b: Path) -> dict:
     """Per output folder: files compared and the largest pixel difference (PNG codes, EXR values)."""
     res = {}
     for sub in ("composite", "composite_linear", "lightmap", "envmap", "sphere"):
-        files = sorted(p.name for p in (a / sub).glob("*") if p.suffix in (".png", ".exr"))
+        files = sorted(p.name for p in (a / sub).glob("*") if p.suffix in (".png", ".jpg", ".exr"))
         if not files:
             continue
         worst = 0.0

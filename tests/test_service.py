@@ -29,7 +29,7 @@ from photoreg.cli import main
 from photoreg.config import Session, load_session
 from photoreg.io.recording import open_recording
 from photoreg.pipeline import Pipeline
-from photoreg.service.client import Client, ServiceClosed, connect, replay
+from photoreg.service.client import Client, ServiceClosed, connect, encoded_ahead, replay, session_options
 from photoreg.io.images import linear_to_srgb
 from photoreg.service.protocol import (CLIENT_TYPES, ERROR_CODES, Limits, ProtocolError, composite_message, decode,
                                        decode_composite, decode_frame, encode, encode_composite, encode_frame,
@@ -320,6 +320,75 @@ def test_streamed_composites_equal_the_direct_pipeline_s(tmp_path):
         composite = pipe.process(rec.frame(i)).composite
         got = cv2.cvtColor(cv2.imread(str(out / "composite" / f"{i:06d}.png")), cv2.COLOR_BGR2RGB)
         np.testing.assert_array_equal(got, linear_to_srgb(composite))
+
+
+def test_frames_are_encoded_ahead_in_order_and_bounded(recording):
+    """encoded_ahead: the messages of protocol.encode_frame, in the frames' order, on several threads; it draws at
+    most 2 * threads frames beyond the one the caller holds, and stops drawing when the caller stops."""
+    frames = list(open_recording(recording))
+    drawn = []
+
+    def source():
+        for frame in frames:
+            drawn.append(frame.index)
+            yield frame
+
+    got = encoded_ahead(source(), "png", "png16", threads=2)
+    first, message = next(got)
+    assert first.index == 0 and message == encode_frame(frames[0], None, "png", "png16")
+    assert len(drawn) <= 1 + 2 * 2
+    rest = [(f.index, m) for f, m in got]
+    assert rest == [(f.index, encode_frame(f, None, "png", "png16")) for f in frames[1:]]
+    drawn.clear()
+    got = encoded_ahead(source(), "png", "png16", threads=1)
+    next(got)
+    got.close()
+    assert len(drawn) <= 3
+
+
+def test_the_next_frame_is_handed_in_and_runs_while_a_composite_is_encoded(tmp_path, monkeypatch):
+    """The server hands the pipeline the next queued frame while it runs one, and encodes a done frame's composite
+    while the next one runs: with the encoding slowed down (0.5 s a composite), frame 1 is handed in before frame
+    0's pipeline is done and runs before frame 0's composite is encoded; the composites still arrive, in order,
+    after their lighting."""
+    import photoreg.service.server as server_module
+    from photoreg.service.host import PipelineHost
+
+    events = []
+    encode, process, hand = server_module.encode_composite, Pipeline.process, PipelineHost.process
+
+    def slow_encode(composite, encoding):
+        events.append(("encode start", time.perf_counter()))
+        time.sleep(0.5)
+        events.append(("encode end", time.perf_counter()))
+        return encode(composite, encoding)
+
+    def recorded_process(self, frame):
+        events.append((f"process {frame.index}", time.perf_counter()))
+        result = process(self, frame)
+        events.append((f"done {frame.index}", time.perf_counter()))
+        return result
+
+    def recorded_hand(self, frame):
+        events.append((f"handed {frame.index}", time.perf_counter()))
+        return hand(self, frame)
+
+    monkeypatch.setattr(server_module, "encode_composite", slow_encode)
+    monkeypatch.setattr(Pipeline, "process", recorded_process)
+    monkeypatch.setattr(PipelineHost, "process", recorded_hand)
+    demo = REPO / "data" / "demo"
+    with ServerThread(ServerConfig(port=0, device="cpu", idle_timeout=60, meshes=str(demo), processes=False,
+                                   queue=4)) as running:
+        client = connect(running.server.url, open_recording(demo).intrinsics,
+                         {**session_options(demo / "session.toml"), "lighting": {"rays": 16, "bands": 2}})
+        order = []
+        summary = replay(client, list(open_recording(demo))[:3], window=3,
+                         on_record=lambda r: order.append(("lighting", r["frame"])),
+                         on_composite=lambda i, enc, image: order.append(("composite", i)))
+    assert summary["composites"] == 3 and not summary["errors"]
+    assert order == [(kind, i) for i in range(3) for kind in ("lighting", "composite")]
+    at = dict(events[::-1])   # the first time of each event
+    assert at["handed 1"] < at["done 0"] and at["process 1"] < at["encode end"]
 
 
 def test_four_concurrent_clients(server, recording, tmp_path):

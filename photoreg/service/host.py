@@ -14,11 +14,12 @@ import signal
 import threading
 from concurrent.futures import Executor, Future, ProcessPoolExecutor, ThreadPoolExecutor
 
+import numpy as np
+
 from ..config import Session
 from ..pipeline import Pipeline
 from ..runner import result_record
 from ..types import Frame, Intrinsics
-from .protocol import encode_composite
 
 WARM_INTRINSICS = Intrinsics(64, 48, 60.0, 60.0, 31.5, 23.5, 1000.0)
 # The connection's pipeline, on the one thread that runs its calls: the connection's own thread, or the main thread
@@ -45,11 +46,11 @@ def _open_here(session: Session, intrinsics: Intrinsics) -> None:
     _local.pipeline = Pipeline(session, intrinsics)
 
 
-def _reply_here(frame: Frame, encoding: str | None) -> tuple[dict, int, bytes | None]:
-    """(lighting record, frame index, the composite encoded for the client or None) of one frame."""
+def _reply_here(frame: Frame) -> tuple[dict, int, np.ndarray | None]:
+    """(lighting record, frame index, the linear composite or None) of one frame: the server converts and encodes
+    the composite for the client while the pipeline runs the next frame."""
     result = _local.pipeline.process(frame)
-    image = None if result.composite is None else encode_composite(result.composite, encoding)
-    return result_record(result), result.index, image
+    return result_record(result), result.index, result.composite
 
 
 def _close_here() -> None:
@@ -82,9 +83,10 @@ class PipelineHost:
                                "again, so a script that starts the server at import needs `if __name__ == "
                                "\"__main__\":` round that code (or ServerConfig(processes=False))") from e
 
-    def process(self, frame: Frame, encoding: str | None) -> Future:
-        """A future of (lighting record, frame index, the encoded composite or None)."""
-        return self.executor.submit(_reply_here, frame, encoding)
+    def process(self, frame: Frame) -> Future:
+        """A future of (lighting record, frame index, the linear composite or None); calls run in order, one at a
+        time, so a frame handed in while another runs is taken up as soon as that one is done."""
+        return self.executor.submit(_reply_here, frame)
 
     def close(self) -> None:
         """After the calls in work (a hello's included), close the pipeline if one was built (its lighting worker

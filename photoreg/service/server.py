@@ -5,9 +5,9 @@ helper thread, enqueue) and a worker (run the pipeline in the connection's own p
 ServerConfig.processes off on its own thread: photoreg.service.host; reply). The
 queue between them is bounded and, when a frame arrives while it is full, drops the oldest waiting
 frame ('latest wins'), so a client faster than the pipeline gets fresh answers and memory stays
-bounded: per connection at most `queue` decoded frames, one message being decoded and websockets'
-small receive buffer. A client that does not read its replies stalls only its own worker (a send
-waits for its socket); every other connection keeps its own pipeline and queue. A session with objects (their
+bounded: per connection at most `queue` decoded frames waiting, HANDED in the pipeline, one composite
+being encoded, one message being decoded and websockets' small receive buffer. A client that does not
+read its replies stalls only its own worker (a send waits for its socket); every other connection keeps its own pipeline and queue. A session with objects (their
 meshes named in the server's mesh folder, --meshes) gets each frame's composite after its lighting reply.
 """
 from __future__ import annotations
@@ -21,7 +21,7 @@ import os
 import signal
 import threading
 import time
-from concurrent.futures import BrokenExecutor
+from concurrent.futures import BrokenExecutor, Future
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -34,11 +34,12 @@ from ..device import resolve_device
 from ..types import Frame, Intrinsics
 from .host import PipelineHost
 from .protocol import (CLIENT_TYPES, Limits, ProtocolError, bye_message, composite_message, decode, decode_frame,
-                       encode, error_message, lighting_message, parse_hello, ready_message)
+                       encode, encode_composite, error_message, lighting_message, parse_hello, ready_message)
 
 log = logging.getLogger("photoreg.serve")
 COUNTS = ("received", "processed", "dropped", "cancelled", "errors")   # frames, per connection and in total
 SEND_TIMEOUT = 2.0   # s: the last words (bye, errors before closing) to a client that may not be reading
+HANDED = 2           # frames a connection's pipeline holds: the one it runs and the next (Connection._feed)
 
 
 @dataclass
@@ -95,6 +96,8 @@ class Connection:
     def __init__(self, server: "PhotoregServer", ws: ServerConnection):
         self.server, self.ws, self.cfg = server, ws, server.config
         self.queue: collections.deque[_Queued] = collections.deque(maxlen=self.cfg.queue)
+        # the frames handed to the pipeline, in order: (frame, when handed, the future of its reply); at most HANDED
+        self.running: collections.deque[tuple[_Queued, float, Future]] = collections.deque()
         self.wake = asyncio.Event()      # the queue has work
         self.idle = asyncio.Event()      # nothing queued and nothing in the pipeline
         self.idle.set()
@@ -253,28 +256,40 @@ class Connection:
         self.queue.append(_Queued(frame, received))
         self.idle.clear()
         self.wake.set()
+        self._feed()
 
     # --------------------------------------------------------------------------------------- worker
 
+    def _feed(self) -> None:
+        """Hand queued frames to the connection's pipeline while it holds fewer than HANDED (the one it runs and the
+        next, handed in beside it: a process's hand-over, the frame sent to it and picked up there, took 8-9 ms a
+        frame on an H100's host, now off the frames' path). Called by the reader when a frame comes and by the
+        worker when one is done; both on the event loop."""
+        while self.queue and len(self.running) < HANDED:
+            item = self.queue.popleft()
+            try:
+                future = self.host.process(item.frame)
+            except BrokenExecutor as e:   # the process died: the worker says so when it comes to this frame
+                future = Future()
+                future.set_exception(e)
+            self.running.append((item, time.perf_counter(), future))
+
     async def _work(self) -> None:
-        """Process queued frames one at a time on the connection's thread or process and reply to each; a
-        pipeline process that died ends the connection (error, then close code 1011)."""
+        """Reply to the frames in the pipeline, in order, as each is done; a done frame's composite is converted to
+        sRGB and encoded on a helper thread while the next frame runs (10-20 ms at 640x480). A pipeline process that
+        died ends the connection (error, then close code 1011)."""
         try:
             while True:
-                if not self.queue:
+                self._feed()
+                if not self.running:
                     self.idle.set()
                     self.wake.clear()
                     await self.wake.wait()
                     continue
-                item = self.queue.popleft()
+                item, handed, future = self.running[0]
                 index = item.frame.index
-                started = time.perf_counter()
                 try:
-                    record, done, image = await asyncio.wrap_future(self.host.process(item.frame, self.composite))
-                    msg = lighting_message(record, self.counts["dropped"],
-                                           (time.perf_counter() - item.received) * 1000.0,
-                                           (started - item.received) * 1000.0)
-                    text = encode(msg)
+                    record, done, composite = await asyncio.wrap_future(future)
                 except BrokenExecutor as e:
                     log.error("%s: the connection's pipeline process stopped at frame %d: %s", self.peer, index, e)
                     self.counts["errors"] += 1
@@ -287,9 +302,20 @@ class Connection:
                     self.counts["errors"] += 1
                     await self._send(error_message("pipeline", f"frame {index}: {e}", index))
                     continue
+                finally:
+                    self.running.popleft()
+                self._feed()   # the next frame goes in before this one's reply
                 self.counts["processed"] += 1
-                await self.ws.send(text)
-                if image is not None:
+                await self._send(lighting_message(record, self.counts["dropped"],
+                                                  (time.perf_counter() - item.received) * 1000.0,
+                                                  (handed - item.received) * 1000.0))
+                if composite is not None:
+                    try:
+                        image = await asyncio.to_thread(encode_composite, composite, self.composite)
+                    except ValueError as e:
+                        self.counts["errors"] += 1
+                        await self._send(error_message("pipeline", f"frame {index}: {e}", index))
+                        continue
                     await self.ws.send(composite_message(done, image, self.composite))
         except ConnectionClosed:
             pass
