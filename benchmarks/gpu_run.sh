@@ -58,6 +58,9 @@
 #              the package in OLD, alternating, LIVE_ROUNDS (default 2) rounds of frames LIVE_FRAMES (default 0:100): TUM
 #              with the bunny (sessions/tum_fr1_rpy.toml) --async and in line, TUM alone --async (OUTDIR/live_ab.json);
 #              then benchmarks/live_split.py through this tree's server, a process per connection and --threads
+#   readab     frames read on several threads: `photoreg run` of TUM alone and with the bunny (--async, run_ab.py) and
+#              `photoreg stream` of TUM alone (--async; PNG and raw rgb8/u16 frames, live_ab.py), this tree against
+#              the package in OLD, alternating (OUTDIR/read_run_ab.json, OUTDIR/read_live_ab.json)
 #   serve      benchmarks/serve_clients.py: SERVE_CLIENTS (default 4) `photoreg stream RECORDING` clients at once through
 #              `photoreg serve --device cuda` with and without --threads, SERVE_ROUNDS (default 1) rounds of
 #              frames SERVE_FRAMES (default 0:40), into OUTDIR/serve_clients.json
@@ -253,6 +256,14 @@ for step in "$@"; do
         done
         kill $srv; wait $srv || true
       done ;;
+    readab)
+      sed '/^\[\[objects\]\]/,/^$/d' sessions/tum_fr1_rpy.toml > /tmp/tum_bare.toml   # TUM alone
+      python3 -m photoreg run sessions/tum_fr1_rpy.toml --device cuda --frames 0:4 --out /tmp/run_warm --quiet > /dev/null
+      python3 benchmarks/run_ab.py "$OLD" "bare_async=/tmp/tum_bare.toml,--async" \
+        "bunny_async=sessions/tum_fr1_rpy.toml,--async" --device cuda --frames "${RUN_FRAMES:-0:100}" \
+        --rounds "${RUN_ROUNDS:-2}" --json "$out/read_run_ab.json"
+      python3 benchmarks/live_ab.py "$OLD" "$rec" "bare_async=,--async" "bare_raw=,--async --color rgb8 --depth u16" \
+        --device cuda --frames "${LIVE_FRAMES:-0:100}" --rounds "${LIVE_ROUNDS:-2}" --json "$out/read_live_ab.json" ;;
     serve)
       python3 benchmarks/serve_clients.py "$rec" --device cuda --clients "${SERVE_CLIENTS:-4}" \
         --frames "${SERVE_FRAMES:-0:40}" --rounds "${SERVE_ROUNDS:-1}" --json "$out/serve_clients.json" ;;

@@ -1,10 +1,11 @@
 """Where a live client's frame time goes on the server: the median gap between lighting replies against the
 pipeline's own median frame (timings_ms.total), and the server's latency split into queue and pipeline.
 
-  python benchmarks/live_split.py URL RECORDING [--session SESSION.toml] [--frames 100]
+  python benchmarks/live_split.py URL RECORDING [--session SESSION.toml] [--frames 100] [--color png] [--depth png16]
 
-Streams RECORDING's first frames through a running `photoreg serve` at URL (`--async`, PNG colour and depth, two
-frames in flight, as `photoreg stream` sends them) and prints one JSON line; the first 5 replies are left out.
+Streams RECORDING's first frames through a running `photoreg serve` at URL (`--async`, two frames in flight, the
+frames encoded as `photoreg stream --color --depth` sends them) and prints one JSON line; the first 5 replies are
+left out.
 """
 from __future__ import annotations
 
@@ -17,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from photoreg.io.recording import ReadAhead, iter_frames, open_recording  # noqa: E402
+from photoreg.io.recording import ReadAhead, open_recording  # noqa: E402
 from photoreg.service.client import connect, encoded_ahead, session_options  # noqa: E402
 
 WINDOW = 2
@@ -29,6 +30,8 @@ def main() -> int:
     ap.add_argument("recording")
     ap.add_argument("--session")
     ap.add_argument("--frames", type=int, default=100)
+    ap.add_argument("--color", default="png")
+    ap.add_argument("--depth", default="png16")
     a = ap.parse_args()
     rec = open_recording(a.recording)
     options = session_options(a.session) if a.session else {}
@@ -43,8 +46,8 @@ def main() -> int:
             replies.append((time.perf_counter(), msg["latency_ms"], msg["queue_ms"], msg["timings_ms"]["total"]))
 
     t0 = time.perf_counter()
-    frames = ReadAhead(iter_frames(rec, list(range(a.frames))))
-    for _, message in encoded_ahead(frames, "png", "png16", 4):
+    frames = ReadAhead(rec, range(a.frames), threads=4)
+    for _, message in encoded_ahead(frames, a.color, a.depth, 4):
         while in_flight >= WINDOW:
             take(client.recv(120))
         client.send_message(message)
@@ -53,7 +56,7 @@ def main() -> int:
         take(msg)
     wall = time.perf_counter() - t0
     r = np.array(replies[5:])
-    print(json.dumps({"frames": len(replies), "frames_per_s": round(len(replies) / wall, 1),
+    print(json.dumps({"color": a.color, "depth": a.depth, "frames": len(replies), "frames_per_s": round(len(replies) / wall, 1),
                       "reply_gap_ms": round(float(np.median(np.diff(r[:, 0]))) * 1000, 1),
                       "pipeline_frame_ms": round(float(np.median(r[:, 3])), 1),
                       "server_latency_ms": round(float(np.median(r[:, 1])), 1),

@@ -120,7 +120,7 @@ def run_session(s: Session, quiet: bool = False, on_frame: Callable[[int, int], 
     """Process a session; returns the summary (also written to summary.json).
 
     on_frame(frames done, frames selected) is called after each frame (batch progress from worker processes)."""
-    from .io.recording import ReadAhead, iter_frames, open_recording
+    from .io.recording import ReadAhead, open_recording
     from .pipeline import Pipeline
 
     rec = open_recording(s.recording.path, fmt=s.recording.format, undistort=s.recording.undistort)
@@ -141,7 +141,8 @@ def run_session(s: Session, quiet: bool = False, on_frame: Callable[[int, int], 
     partial = out / "lighting.jsonl.partial"
     t0 = time.perf_counter()
     # frames read ahead and files written beside the frames (the video's frames in order, in a thread of their own)
-    reader = ReadAhead(iter_frames(rec, indices, on_error=lambda i, msg: skipped.append({"frame": i, "error": msg})))
+    reader = ReadAhead(rec, indices, on_error=lambda i, msg: skipped.append({"frame": i, "error": msg}),
+                       threads=writer_threads())
     with open(partial, "w") as f, OutputWriter(writer_threads(), name="photoreg-files") as files, \
             OutputWriter(1, name="photoreg-video") as frames:
         try:

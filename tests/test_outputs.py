@@ -1,5 +1,5 @@
 """A run's output path: the sRGB table, files written beside the frames (OutputWriter), frames read ahead
-(ReadAhead), and a run whose writes fail."""
+(Ahead, ReadAhead), and a run whose writes fail."""
 from __future__ import annotations
 
 import threading
@@ -11,6 +11,7 @@ import pytest
 
 from photoreg.config import load_session
 from photoreg.io.images import _srgb_oetf8, linear_to_srgb
+from photoreg.io.ahead import Ahead
 from photoreg.io.recording import ReadAhead
 from photoreg.io.writer import OutputWriter
 from photoreg.runner import run_session
@@ -85,29 +86,70 @@ def test_writer_raises_the_first_error_and_keeps_the_jobs_before_it(tmp_path):
             raise KeyError("the caller's")
 
 
-def test_read_ahead_keeps_order_raises_in_place_and_stops():
+def test_work_ahead_keeps_order_raises_in_place_and_stops():
+    """Ahead: results in the items' order whatever order the threads finish in; an error of the work or of drawing
+    the items raised in its place, after the results before it; items drawn ahead of the caller (`depth` + 1 beyond
+    the one in hand, no more), and none after close()."""
     pulled = []
 
-    def frames(n: int, bad: int | None = None):
+    def items(n: int, bad: int | None = None):
         for i in range(n):
             pulled.append(i)
             if i == bad:
-                raise ValueError(f"frame {i}: unreadable")
+                raise ValueError(f"item {i}: unreadable")
             yield i
 
-    assert list(ReadAhead(frames(10), depth=3)) == list(range(10))
+    def slow_first(i: int) -> int:   # later items finish first
+        time.sleep(0.05 if i % 3 == 0 else 0.0)
+        if i == 7:
+            raise KeyError("work 7")
+        return i * i
+
+    assert list(Ahead(slow_first, items(7), threads=3, depth=3)) == [i * i for i in range(7)]
     got = []
-    with pytest.raises(ValueError, match="frame 4"):
-        for i in ReadAhead(frames(10, bad=4)):
-            got.append(i)
-    assert got == [0, 1, 2, 3]
+    with pytest.raises(ValueError, match="item 4"):
+        for r in Ahead(slow_first, items(10, bad=4), threads=2):
+            got.append(r)
+    assert got == [0, 1, 4, 9]
+    got = []
+    with pytest.raises(KeyError, match="work 7"):
+        for r in Ahead(slow_first, items(10), threads=3, depth=4):
+            got.append(r)
+    assert got == [i * i for i in range(7)]
     pulled.clear()
-    reader = ReadAhead(frames(1000), depth=2)
-    for i in reader:
-        if i == 5:
+    ahead = Ahead(slow_first, items(1000), threads=2, depth=2)
+    for r in ahead:
+        if r == 25:
+            time.sleep(0.2)   # time to draw all it may
+            assert len(pulled) == 5 + 1 + 2 + 1   # `depth` + 1 past the item in hand, no more
             break
-    reader.close()
-    assert len(pulled) <= 5 + 1 + 2 + 1   # read at most the queue's depth (and the frame in hand) past the last
+    ahead.close()
+    assert len(pulled) == 5 + 1 + 2 + 1
+
+
+def test_frames_read_ahead_in_order_with_the_unreadable_ones_reported(tmp_path):
+    """ReadAhead on several threads gives iter_frames' frames in order; an unreadable frame goes to on_error in its
+    place (or is raised there without on_error)."""
+    from photoreg.io.recording import iter_frames, open_recording
+    from photoreg.types import Intrinsics
+    from scenes import write_recording
+
+    root = write_recording(tmp_path / "rec", Intrinsics(40, 30, 35.0, 35.0, 19.5, 14.5, 5000.0), 8)
+    rec = open_recording(root)
+    (rec.color_files[5]).write_bytes(b"not a png")
+    errors, order = [], []
+    frames = ReadAhead(rec, on_error=lambda i, msg: (errors.append(i), order.append(("error", i))), threads=3)
+    got = []
+    for f in frames:
+        got.append(f)
+        order.append(("frame", f.index))
+    want = list(iter_frames(rec, on_error=lambda i, msg: None))
+    assert [f.index for f in got] == [0, 1, 2, 3, 4, 6, 7] and errors == [5]
+    assert order == [("frame", i) for i in range(5)] + [("error", 5), ("frame", 6), ("frame", 7)]
+    for a, b in zip(got, want):
+        assert np.array_equal(a.color, b.color) and np.array_equal(a.depth, b.depth)
+    with pytest.raises(ValueError, match=str(rec.color_files[5])):
+        list(ReadAhead(rec, threads=2))
 
 
 def test_run_stops_with_the_failed_write_named(tmp_path):

@@ -7,9 +7,6 @@ so one bad image spoils one frame, not the recording. Format readers: tum.py, re
 from __future__ import annotations
 
 import argparse
-import queue
-import threading
-import time
 from dataclasses import dataclass, field
 from functools import cached_property
 from pathlib import Path
@@ -19,6 +16,7 @@ import cv2
 import numpy as np
 
 from ..types import Frame, Intrinsics
+from .ahead import Ahead
 from .images import read_depth_raw, read_rgb
 from .poses import check_pose
 
@@ -180,58 +178,33 @@ def iter_frames(recording: Recording, indices: Iterable[int] | None = None,
         yield frame
 
 
-class ReadAhead:
-    """The frames of `frames`, in order, read by a thread of its own up to `depth` frames ahead of the caller (a TUM
-    frame's two PNGs took 11-16 ms to decode on the 2-core CPU, while the frame's own work waited for them). An error
-    of the reader is raised where its frame would have come; `waited_s`: how long the caller waited for frames.
-    close() (and the end of the loop) stops the reader."""
+class ReadAhead(Ahead[int, Frame]):
+    """The frames `indices` of a recording (default all) read on `threads` threads up to `depth` (default 2 * threads)
+    frames ahead of the caller, in order (a TUM frame's two PNGs took 11-21 ms to decode, while the frame's own work
+    waited for them). A frame that cannot be read is passed to on_error(index, message) in its place and skipped;
+    without on_error its error is raised there (as iter_frames). `waited_s`: how long the caller waited for frames;
+    close() (and the end of the loop) stops the reading."""
 
-    _END = object()
+    def __init__(self, recording: Recording, indices: Iterable[int] | None = None,
+                 on_error: Callable[[int, str], None] | None = None, threads: int = 1, depth: int | None = None):
+        self.recording, self.on_error = recording, on_error
+        super().__init__(self._read, range(len(recording)) if indices is None else indices, threads,
+                         2 * threads if depth is None else depth, name="photoreg-read")
 
-    def __init__(self, frames: Iterable[Frame], depth: int = 2):
-        self._queue: queue.Queue = queue.Queue(maxsize=depth)
-        self._stop = threading.Event()
-        self.waited_s = 0.0
-        self._thread = threading.Thread(target=self._read, args=(iter(frames),), name="photoreg-read", daemon=True)
-        self._thread.start()
-
-    def _put(self, item) -> bool:
-        while not self._stop.is_set():
-            try:
-                self._queue.put(item, timeout=0.1)
-                return True
-            except queue.Full:
-                continue
-        return False
-
-    def _read(self, frames: Iterator[Frame]) -> None:
+    def _read(self, i: int) -> Frame | tuple[int, Exception]:
         try:
-            for frame in frames:
-                if not self._put(frame):
-                    return
-        except BaseException as e:   # raised in the caller, in the frames' order
-            self._put(e)
-            return
-        self._put(self._END)
+            return self.recording.frame(i)
+        except (ValueError, OSError) as e:
+            if self.on_error is None:
+                raise
+            return i, e
 
     def __iter__(self) -> Iterator[Frame]:
-        try:
-            while True:
-                t = time.perf_counter()
-                item = self._queue.get()
-                self.waited_s += time.perf_counter() - t
-                if item is self._END:
-                    return
-                if isinstance(item, BaseException):
-                    raise item
-                yield item
-        finally:
-            self.close()
-
-    def close(self) -> None:
-        """Stop the reader and wait for it (at most the frame it is reading); idempotent."""
-        self._stop.set()
-        self._thread.join()
+        for frame in super().__iter__():
+            if isinstance(frame, tuple):
+                self.on_error(frame[0], str(frame[1]))
+                continue
+            yield frame
 
 
 def depth_summary(recording: Recording, samples: int = 5) -> tuple[np.ndarray | None, float, list[tuple[int, str]]]:

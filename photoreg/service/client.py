@@ -14,16 +14,16 @@ import signal
 import sys
 import threading
 import time
-from collections import OrderedDict, deque
-from concurrent.futures import Future, ThreadPoolExecutor
+from collections import OrderedDict
 from pathlib import Path
-from typing import Callable, Iterable, Iterator
+from typing import Callable, Iterable
 
 import numpy as np
 from websockets.exceptions import ConnectionClosed, InvalidHandshake, InvalidURI
 from websockets.sync.client import ClientConnection
 from websockets.sync.client import connect as ws_connect
 
+from ..io.ahead import Ahead
 from ..io.atomic import atomic_path, write_json
 from ..types import Frame, Intrinsics
 from .protocol import (CLIENT_RECONSTRUCTION_KEYS, ProtocolError, decode, decode_composite, encode, encode_frame,
@@ -148,24 +148,12 @@ def percentiles(values_ms: list[float]) -> dict:
             "max": round(float(v.max()), 3)}
 
 
-def encoded_ahead(frames: Iterable[Frame], color: str, depth: str, threads: int) -> Iterator[tuple[Frame, bytes]]:
+def encoded_ahead(frames: Iterable[Frame], color: str, depth: str, threads: int) -> Ahead[Frame, tuple[Frame, bytes]]:
     """(frame, its frame message, protocol.encode_frame) in order, encoded on `threads` threads up to 2 * threads
-    frames ahead of the caller, who gets each as soon as it and those before it are done (a TUM frame's lossless
-    colour and depth PNGs took 23 ms on the 2-core CPU, more than the server's whole frame on a GPU)."""
-    pending: deque[tuple[Frame, Future]] = deque()
-    with ThreadPoolExecutor(threads, thread_name_prefix="photoreg-encode") as pool:
-        try:
-            for frame in frames:
-                pending.append((frame, pool.submit(encode_frame, frame, None, color, depth)))
-                while pending and (len(pending) > 2 * threads or pending[0][1].done()):
-                    head, message = pending.popleft()
-                    yield head, message.result()
-            while pending:
-                head, message = pending.popleft()
-                yield head, message.result()
-        finally:
-            for _, message in pending:
-                message.cancel()
+    frames ahead of the caller (a TUM frame's lossless colour and depth PNGs took 23-42 ms, more than the server's
+    whole frame on a GPU)."""
+    return Ahead(lambda frame: (frame, encode_frame(frame, None, color, depth)), frames, threads, 2 * threads,
+                 name="photoreg-encode")
 
 
 def replay(client: Client, frames: Iterable[Frame], realtime: bool = False, window: int = 2,
@@ -287,7 +275,7 @@ def session_options(path: str | Path) -> dict:
 def stream_command(args) -> int:
     """`photoreg stream RECORDING --url URL`: replay a recording through a server, save the replies."""
     from ..config import parse_frames
-    from ..io.recording import ReadAhead, iter_frames, open_recording
+    from ..io.recording import ReadAhead, open_recording
     from ..runner import Progress, writer_threads
 
     rec = open_recording(args.recording)
@@ -311,7 +299,8 @@ def stream_command(args) -> int:
     client = connect(args.url, rec.intrinsics, options, args.token or os.environ.get("PHOTOREG_TOKEN"),
                      composite=args.composite)
     hello_ms = round((time.perf_counter() - t_hello) * 1000.0, 1)   # connect, hello, ready
-    frames = ReadAhead(iter_frames(rec, indices, on_error=lambda i, msg: skipped.append({"frame": i, "error": msg})))
+    frames = ReadAhead(rec, indices, on_error=lambda i, msg: skipped.append({"frame": i, "error": msg}),
+                       threads=writer_threads())
     partial = None
     if out is not None:
         out.mkdir(parents=True, exist_ok=True)
