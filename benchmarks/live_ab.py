@@ -30,9 +30,10 @@ def run(code_dir: Path, recording: str, session: str, flags: list[str], out: Pat
         shutil.rmtree(out)
     env = dict(os.environ, PYTHONPATH=f"{code_dir}{os.pathsep}{os.environ.get('PYTHONPATH', '')}", PYTHONUNBUFFERED="1")
     port = free_port()
+    meshes = ["--meshes", str(Path(a.meshes).resolve())] if a.meshes else []
     server = subprocess.Popen([sys.executable, "-m", "photoreg", "serve", "--port", str(port), "--device", a.device,
-                               *(["--meshes", str(Path(a.meshes).resolve())] if a.meshes else [])], cwd=code_dir, env=env,
-                              stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
+                               *meshes], cwd=code_dir, env=env, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL,
+                              text=True)
     try:
         line = server.stdout.readline()
         if "listening on ws://" not in line:

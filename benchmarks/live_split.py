@@ -56,7 +56,8 @@ def main() -> int:
         take(msg)
     wall = time.perf_counter() - t0
     r = np.array(replies[5:])
-    print(json.dumps({"color": a.color, "depth": a.depth, "frames": len(replies), "frames_per_s": round(len(replies) / wall, 1),
+    print(json.dumps({"color": a.color, "depth": a.depth, "frames": len(replies),
+                      "frames_per_s": round(len(replies) / wall, 1),
                       "reply_gap_ms": round(float(np.median(np.diff(r[:, 0]))) * 1000, 1),
                       "pipeline_frame_ms": round(float(np.median(r[:, 3])), 1),
                       "server_latency_ms": round(float(np.median(r[:, 1])), 1),

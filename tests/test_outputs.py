@@ -2,6 +2,7 @@
 (Ahead, ReadAhead), and a run whose writes fail."""
 from __future__ import annotations
 
+import json
 import threading
 import time
 from pathlib import Path
@@ -150,6 +151,27 @@ def test_frames_read_ahead_in_order_with_the_unreadable_ones_reported(tmp_path):
         assert np.array_equal(a.color, b.color) and np.array_equal(a.depth, b.depth)
     with pytest.raises(ValueError, match=str(rec.color_files[5])):
         list(ReadAhead(rec, threads=2))
+
+
+def test_run_skips_an_unreadable_frame_and_names_it(tmp_path):
+    """`photoreg run` of a recording with a corrupt colour image: every other frame is processed in order, the bad
+    one is listed in summary.json's frames_skipped with the file's error."""
+    from photoreg.cli import main
+    from photoreg.io.recording import open_recording
+    from photoreg.types import Intrinsics
+    from scenes import write_recording
+
+    root = write_recording(tmp_path / "rec", Intrinsics(80, 60, 70.0, 70.0, 39.5, 29.5, 5000.0), 4)
+    bad = open_recording(root).color_files[1]
+    bad.write_bytes(b"not a png")
+    out = tmp_path / "out"
+    assert main(["run", str(root), "--out", str(out), "--bands", "2", "--rays", "16", "--stride", "4",
+                 "--voxel-size", "0.02", "--device", "cpu", "--quiet"]) == 0
+    summary = json.loads((out / "summary.json").read_text())
+    records = [json.loads(line) for line in (out / "lighting.jsonl").read_text().splitlines()]
+    assert [r["frame"] for r in records] == [0, 2, 3] and summary["frames_processed"] == 3
+    (skipped,) = summary["frames_skipped"]
+    assert skipped["frame"] == 1 and str(bad) in skipped["error"]
 
 
 def test_run_stops_with_the_failed_write_named(tmp_path):

@@ -394,6 +394,18 @@ def test_the_next_frame_is_handed_in_and_runs_while_a_composite_is_encoded(tmp_p
     assert at["handed 1"] < at["done 0"] and at["process 1"] < at["encode end"]
 
 
+def test_stream_reports_an_unreadable_frame_and_sends_the_rest(server, tmp_path):
+    """`photoreg stream` of a recording with a corrupt colour image: the frames around it are read ahead, sent and
+    answered in order; the bad one is named in summary.json's frames_skipped."""
+    rec = write_recording(tmp_path / "rec", K, 4)
+    bad = open_recording(rec).color_files[2]
+    bad.write_bytes(b"not a png")
+    records, summary = stream(rec, server.server.url, tmp_path / "out")
+    assert [r["frame"] for r in records] == [0, 1, 3] and not summary["errors"]
+    (skipped,) = summary["frames_skipped"]
+    assert skipped["frame"] == 2 and str(bad) in skipped["error"]
+
+
 def test_four_concurrent_clients(server, recording, tmp_path):
     results: dict[int, tuple] = {}
 
