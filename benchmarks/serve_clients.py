@@ -2,7 +2,7 @@
 against a process each (the default), the modes alternating over rounds (benchmarks/speed.md, "Several clients at once").
 
     python benchmarks/serve_clients.py RECORDING [--clients 2] [--frames 0:20] [--rounds 2] [--device cpu]
-        [--json OUT.json] [-- STREAM ARGS...]
+        [--meshes DIR] [--json OUT.json] [-- STREAM ARGS...]
 
 Each run starts `photoreg serve --port P --max-clients N` (plus --threads), waits for it to listen, runs N
 `photoreg stream RECORDING` at once (each with its own --out), and reads their summary.json: frames/s in all
@@ -33,7 +33,8 @@ def one_run(a, processes: bool, stream_args: list[str], work: Path) -> dict:
     """One server, a.clients streams at once; the figures of the run."""
     port = free_port()
     cmd = [sys.executable, "-m", "photoreg", "serve", "--port", str(port), "--device", a.device,
-           "--max-clients", str(a.clients)] + ([] if processes else ["--threads"])
+           "--max-clients", str(a.clients)] + ([] if processes else ["--threads"]) + \
+          (["--meshes", str(Path(a.meshes).resolve())] if a.meshes else [])
     server = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True,
                               env={**os.environ, "PYTHONUNBUFFERED": "1"})
     try:
@@ -73,6 +74,7 @@ def main() -> None:
     ap.add_argument("--frames", default="0:20")
     ap.add_argument("--rounds", type=int, default=2)
     ap.add_argument("--device", default="cpu")
+    ap.add_argument("--meshes", help="the server's --meshes (for STREAM ARGS with a --session that inserts objects)")
     ap.add_argument("--json")
     a = ap.parse_args(argv)
     runs = []
