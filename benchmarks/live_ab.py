@@ -10,7 +10,6 @@ server. The first round's composites of both are compared (equal where the pipel
 """
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import shutil
@@ -18,10 +17,9 @@ import subprocess
 import sys
 from pathlib import Path
 
-from run_ab import largest_difference, save
+from run_ab import ab_parser, ab_rounds
 from serve_clients import free_port
 
-REPO = Path(__file__).resolve().parents[1]
 
 
 def run(code_dir: Path, recording: str, session: str, flags: list[str], out: Path, a) -> dict:
@@ -49,37 +47,16 @@ def run(code_dir: Path, recording: str, session: str, flags: list[str], out: Pat
 
 
 def main() -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("old")
-    ap.add_argument("recording")
-    ap.add_argument("runs", nargs="+", help="LABEL=[SESSION][,FLAGS]")
-    ap.add_argument("--frames", default="0:40")
-    ap.add_argument("--device", default="cpu")
-    ap.add_argument("--rounds", type=int, default=2)
+    ap = ab_parser(__doc__, "/tmp/live_ab", "recording")
     ap.add_argument("--meshes", help="the server's --meshes (the sessions' objects)")
-    ap.add_argument("--work", default="/tmp/live_ab")
-    ap.add_argument("--json")
     a = ap.parse_args()
-    old, work = Path(a.old).resolve(), Path(a.work)
-    rows = []
-    for rnd in range(1, a.rounds + 1):
-        for spec in a.runs:
-            label, rest = spec.split("=", 1)
-            session, _, flags = rest.partition(",")
-            outs = {}
-            for code, where in (("old", old), ("new", REPO)) if rnd % 2 else (("new", REPO), ("old", old)):
-                outs[code] = work / f"{label}_{code}_{rnd}"
-                s = run(where, a.recording, session, flags.split(), outs[code], a)
-                rows.append({"run": label, "code": code, "round": rnd, "flags": flags, "device": s["device"],
-                             "frames": s["frames_processed"], "dropped": s["frames_dropped"],
-                             "errors": len(s["errors"]), "wall_s": s["wall_s"], "frames_per_s": s["frames_per_s"],
-                             "latency_p50_ms": s["latency_ms"]["p50"], "latency_p95_ms": s["latency_ms"]["p95"],
-                             "server_latency_p50_ms": s["server_latency_ms"]["p50"],
-                             "frame_ms_mean": s["timings_ms_mean"].get("total")})
-                save(rows, a.json)
-            if rnd == 1 and session:
-                rows.append({"run": label, "compare": largest_difference(outs["old"], outs["new"])})
-                save(rows, a.json)
+    ab_rounds(a, lambda where, session, flags, out: run(where, a.recording, session, flags, out, a),
+              lambda s: {"device": s["device"], "frames": s["frames_processed"], "dropped": s["frames_dropped"],
+                         "errors": len(s["errors"]), "wall_s": s["wall_s"], "frames_per_s": s["frames_per_s"],
+                         "latency_p50_ms": s["latency_ms"]["p50"], "latency_p95_ms": s["latency_ms"]["p95"],
+                         "server_latency_p50_ms": s["server_latency_ms"]["p50"],
+                         "frame_ms_mean": s["timings_ms_mean"].get("total")},
+              alternate=True)
     return 0
 
 

@@ -63,36 +63,51 @@ def save(rows: list[dict], path: str | None) -> None:
         Path(path).write_text(json.dumps(rows, indent=1) + "\n")
 
 
-def main() -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+def ab_parser(doc: str, work: str, *positional: str) -> argparse.ArgumentParser:
+    """The A/B scripts' arguments: OLD, the `positional` ones, LABEL=[SESSION][,FLAGS] runs, --frames, --device,
+    --rounds, --work (default `work`) and --json."""
+    ap = argparse.ArgumentParser(description=doc.split("\n\n")[0])
     ap.add_argument("old")
-    ap.add_argument("runs", nargs="+", help="LABEL=SESSION[,FLAGS]")
+    for name in positional:
+        ap.add_argument(name)
+    ap.add_argument("runs", nargs="+", help="LABEL=[SESSION][,FLAGS]")
     ap.add_argument("--frames", default="0:40")
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--rounds", type=int, default=2)
-    ap.add_argument("--work", default="/tmp/run_ab")
+    ap.add_argument("--work", default=work)
     ap.add_argument("--json")
-    args = ap.parse_args()
+    return ap
+
+
+def ab_rounds(args, run, figures, alternate: bool = False) -> None:
+    """Each round, each of args.runs with the package in args.old and with this tree, one after the other (with
+    `alternate` this tree first in even rounds): run(code folder, session, flags, output folder) gives the summary,
+    figures(summary) its row, saved as they come (`save`); the first round's outputs of both are compared
+    (largest_difference) where the run has a session."""
     old, work = Path(args.old).resolve(), Path(args.work)
+    codes = (("old", old), ("new", REPO))
     rows = []
     for rnd in range(1, args.rounds + 1):
         for spec in args.runs:
             label, rest = spec.split("=", 1)
             session, _, flags = rest.partition(",")
             outs = {}
-            for code, where in (("old", old), ("new", REPO)):
+            for code, where in codes if rnd % 2 or not alternate else codes[::-1]:
                 outs[code] = work / f"{label}_{code}_{rnd}"
-                s = run(where, session, flags.split(), outs[code], args.frames, args.device)
-                row = {"run": label, "code": code, "round": rnd, "flags": flags, "frames": s["frames_processed"],
-                       "wall_s": s["wall_s"], "frames_per_s": s["frames_per_s"],
-                       "frame_ms_mean": s["timings_ms_mean"].get("total"), "device": s["device"],
-                       "read_wait_s": s.get("read_wait_s"), "write_wait_s": s.get("write_wait_s")}
-                rows.append(row)
+                rows.append({"run": label, "code": code, "round": rnd, "flags": flags,
+                             **figures(run(where, session, flags.split(), outs[code]))})
                 save(rows, args.json)
-            if rnd == 1:
-                same = largest_difference(outs["old"], outs["new"])
-                rows.append({"run": label, "compare": same})
+            if rnd == 1 and session:
+                rows.append({"run": label, "compare": largest_difference(outs["old"], outs["new"])})
                 save(rows, args.json)
+
+
+def main() -> int:
+    args = ab_parser(__doc__, "/tmp/run_ab").parse_args()
+    ab_rounds(args, lambda where, session, flags, out: run(where, session, flags, out, args.frames, args.device),
+              lambda s: {"frames": s["frames_processed"], "wall_s": s["wall_s"], "frames_per_s": s["frames_per_s"],
+                         "frame_ms_mean": s["timings_ms_mean"].get("total"), "device": s["device"],
+                         "read_wait_s": s.get("read_wait_s"), "write_wait_s": s.get("write_wait_s")})
     return 0
 
 

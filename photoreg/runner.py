@@ -141,10 +141,11 @@ def run_session(s: Session, quiet: bool = False, on_frame: Callable[[int, int], 
     partial = out / "lighting.jsonl.partial"
     t0 = time.perf_counter()
     # frames read ahead and files written beside the frames (the video's frames in order, in a thread of their own)
-    reader = ReadAhead(rec, indices, on_error=lambda i, msg: skipped.append({"frame": i, "error": msg}),
-                       threads=writer_threads())
-    with open(partial, "w") as f, OutputWriter(writer_threads(), name="photoreg-files") as files, \
+    threads = writer_threads()
+    with open(partial, "w") as f, OutputWriter(threads, name="photoreg-files") as files, \
             OutputWriter(1, name="photoreg-video") as frames:
+        reader = ReadAhead(rec, indices, on_error=lambda i, msg: skipped.append({"frame": i, "error": msg}),
+                           threads=threads)
         try:
             for frame in reader:
                 r = pipe.process(frame)
