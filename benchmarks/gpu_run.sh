@@ -61,6 +61,9 @@
 #   readab     frames read on several threads: `photoreg run` of TUM alone and with the bunny (--async, run_ab.py) and
 #              `photoreg stream` of TUM alone (--async; PNG and raw rgb8/u16 frames, live_ab.py), this tree against
 #              the package in OLD, alternating (OUTDIR/read_run_ab.json, OUTDIR/read_live_ab.json)
+#   rstride    the objects' shadows sampled at their own stride (render.stride, --render-stride) 1 against 4 (the
+#              default), TUM with the bunny (sessions/tum_fr1_rpy.toml) at lighting stride 1 / 169 / 4, `--every 1000`
+#              (held) and `--async`, alternating, RSTRIDE_ROUNDS (default "1 2") rounds (OUTDIR/rstride.json)
 #   serve      benchmarks/serve_clients.py: SERVE_CLIENTS (default 4) `photoreg stream RECORDING` clients at once through
 #              `photoreg serve --device cuda` with and without --threads, SERVE_ROUNDS (default 1) rounds of
 #              frames SERVE_FRAMES (default 0:40), into OUTDIR/serve_clients.json
@@ -227,6 +230,18 @@ for step in "$@"; do
         done
       done
       merge /tmp/ab "$out/ab.json" ;;
+    rstride)
+      mkdir -p /tmp/rstride
+      for round in ${RSTRIDE_ROUNDS:-1 2}; do
+        for mode in "held --every 1000" "async --async"; do
+          read -r tag flags <<< "$mode"
+          for rs in 1 4; do
+            python3 -m photoreg bench speed sessions/tum_fr1_rpy.toml --device cuda --frames 0:30 --warmup 3 --stride 1 \
+              --rays 169 --bands 4 --render-stride $rs $flags --json "/tmp/rstride/${tag}_r${rs}_$round.json" 2>/dev/null
+          done
+        done
+      done
+      merge /tmp/rstride "$out/rstride.json" ;;
     sweep)
       # The CPU rows of benchmarks/speed_error.csv are kept: copy the merged table and plot back from OUTDIR.
       [ -f "$out/speed_error.csv" ] || cp benchmarks/speed_error.csv "$out/speed_error.csv"

@@ -42,6 +42,8 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
                                                           "0 = off (reconstruction.normal_smoothing_voxels, default 0)")
     p.add_argument("--no-poses", action="store_true", help="ignore recorded poses and track the camera")
     p.add_argument("--shadows", choices=SHADOW_RENDERERS, help="shadow renderer (overrides [render] shadows)")
+    p.add_argument("--render-stride", type=int, help="sample the objects' shadows every n-th pixel, full resolution "
+                                                     "along their silhouettes (render.stride, default 4)")
     p.add_argument("--video", action="store_true", help="also composite.mp4: the composites as a video "
                                                           "(sessions with [[objects]])")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -138,6 +140,8 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--stride", type=int, default=4)
     b.add_argument("--rays", type=int, default=64)
     b.add_argument("--bands", type=int, default=3)
+    b.add_argument("--render-stride", type=int, help="sessions with objects: their shadows sampled every n-th pixel "
+                                                     "(render.stride; default the session's)")
     b.add_argument("--voxel-size", type=float)
     b.add_argument("--ray-length", type=float)
     b.add_argument("--every", type=int, default=1, help="estimate the lighting on every n-th frame (lighting.every)")

@@ -150,6 +150,8 @@ class ObjectConfig:
 class RenderConfig:
     shadows: str = "voxel"        # voxel | shadowmap | neural_soft | neural_shadowmap | none
     light_rays: int = 16          # voxel: rays over the dominant light's disc (sharp shadows); 0 = pure SH (paper)
+    stride: int = 4               # the shadow ratio sampled every n-th pixel (full resolution along the objects'
+                                  # silhouettes), whatever lighting.stride is
 
 
 @dataclass
@@ -309,6 +311,7 @@ def validate(s: Session) -> None:
                "lighting.process_noise must be >= 0 and lighting.change_threshold > 0"),
               (0 < L.new_view_share <= 1, "lighting.new_view_share must be in (0, 1]"),
               (s.render.light_rays >= 0, "render.light_rays must be >= 0"),
+              (s.render.stride >= 1, "render.stride must be >= 1"),
               (not s.output.video or bool(s.objects), "output.video needs [[objects]]: the video shows the composites"),
               (R.voxel_size > 0, "reconstruction.voxel_size must be > 0"),
               (0 < R.depth_min < R.depth_max, "reconstruction.depth_min must be > 0 and < depth_max"),

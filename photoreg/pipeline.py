@@ -197,6 +197,14 @@ class Pipeline:
         fit = int(np.sqrt(self.intrinsics.width * self.intrinsics.height / (GAIN_SAMPLES * SAMPLE_SURPLUS)))
         return max(self.session.lighting.stride, min(GAIN_STRIDE, fit))
 
+    def _held_stride(self) -> int:
+        """Ray-cast stride of a frame that holds the lighting: the render stage's (render.stride: its maps serve the
+        exposure gain too) unless the gain needs a finer one (_gain_stride); without a render stage the gain's."""
+        gain = self._gain_stride()
+        if self.render is None or (self.session.lighting.exposure and self.render.stride > gain):
+            return gain
+        return self.render.stride
+
     def _search_due(self) -> bool:
         """Whether this frame searches the light (then the current view gets a solve of its own)."""
         return self.sun is not None and self.sun.due()
@@ -425,12 +433,13 @@ class Pipeline:
             beside = self._worker is not None and self._held is not None   # estimates run in the worker
             hold = not due or beside
             start = beside and due and self._in_flight is None
-            full = not hold or start or self.render is not None   # the maps at the lighting's stride
-            if full or lc.exposure:
+            full = not hold or start   # the maps at the lighting's stride
+            maps = None
+            if full or lc.exposure or self.render is not None:
                 with self._timed(t, "raycast"):
                     grid = self.volume.dense_grid()
                     maps = raycast_surface(grid, self.intrinsics, pose, rc.depth_min, rc.depth_max,
-                                           stride=lc.stride if full else self._gain_stride(),
+                                           stride=lc.stride if full else self._held_stride(),
                                            normal_smoothing=rc.normal_smoothing_voxels)
             if hold:
                 self._held_for += 1

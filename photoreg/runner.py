@@ -52,7 +52,8 @@ def session_from_args(args) -> Session:
                               ("every", "lighting", "every"),
                               ("depth_filter", "reconstruction", "depth_filter_px"),
                               ("normal_smoothing", "reconstruction", "normal_smoothing_voxels"),
-                              ("voxel_size", "reconstruction", "voxel_size"), ("shadows", "render", "shadows")):
+                              ("voxel_size", "reconstruction", "voxel_size"), ("shadows", "render", "shadows"),
+                              ("render_stride", "render", "stride")):
         v = getattr(args, opt)
         if v is not None:
             setattr(getattr(s, section), key, v)

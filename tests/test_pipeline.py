@@ -159,6 +159,53 @@ def test_held_frames_ray_cast_coarser_only_where_the_gain_keeps_its_samples():
         assert pipeline_module.Pipeline(s, k)._gain_stride() == expected, (w, stride)
 
 
+def test_render_stride_is_the_shadows_own(tmp_path, monkeypatch):
+    """render.stride, not lighting.stride, sets where the renderer samples the shadow ratio: the stage, given the
+    frame's maps at another stride, ray casts its own, and its composite is the one made from maps cast at its
+    stride; a frame that holds the lighting ray casts once, at the render stride, unless its exposure gain needs
+    finer maps (no maps at the lighting's finer stride that nothing reads)."""
+    import photoreg.render.stage as stage_module
+    import trimesh
+
+    from photoreg.config import ObjectConfig
+    from photoreg.kernels.raycast import raycast_surface
+
+    k = Intrinsics(64, 48, 56.0, 56.0, 31.5, 23.5, 5000.0)
+    rec = open_recording(write_recording(tmp_path / "rec", k, 3, with_gt=False))
+    trimesh.creation.box(extents=(1, 1, 1)).export(tmp_path / "cube.obj")
+    s = Session(device="cpu")
+    s.lighting.rays, s.lighting.stride, s.lighting.sun, s.lighting.every = 16, 1, False, 2
+    s.objects = [ObjectConfig(mesh=str(tmp_path / "cube.obj"), position=[0.3, -0.2, 0.05], scale=0.1)]
+    s.render.stride = 2
+    casts = []
+
+    def counted(grid, intr, pose, *args, stride=1, **kwargs):
+        casts.append((intr.width, stride))
+        return raycast_surface(grid, intr, pose, *args, stride=stride, **kwargs)
+
+    monkeypatch.setattr(pipeline_module, "raycast_surface", counted)
+    monkeypatch.setattr(stage_module, "raycast_surface", counted)
+    frames = list(iter_frames(rec, range(3)))
+    for exposure, held in ((False, [(64, 2)]), (True, [(64, 1), (64, 2)])):   # a 64 x 48 frame's gain needs stride 1
+        s.lighting.exposure = exposure
+        pipe = pipeline_module.Pipeline(s, rec.intrinsics)
+        for f in frames:
+            casts.clear()
+            r = pipe.process(f)
+            assert pipe.render.last_input.maps.stride == 2 and r.composite is not None
+            full = [c for c in casts if c[0] == k.width]   # the stage's window casts are narrower
+            assert full == ([(64, 1), (64, 2)] if f.index != 1 else held), (exposure, f.index, casts)   # 1 holds
+    inp, rc = pipe.render.last_input, s.reconstruction
+    prep, pose = prepare(frames[2], s.lighting, rc), frames[2].pose
+    own = {st: raycast_surface(inp.grid, k, pose, rc.depth_min, rc.depth_max, stride=st) for st in (1, 2)}
+    a = pipe.render(prep.linear, prep.depth, inp.grid, own[1], pose, inp.F, inp.gain, inp.sun)
+    b = pipe.render(prep.linear, prep.depth, inp.grid, own[2], pose, inp.F, inp.gain, inp.sun)
+    assert np.array_equal(a, b) and (pipe.render.last.ratio < 0.99).any()
+    s.render.stride = 0
+    with pytest.raises(ValueError, match="render.stride"):
+        validate(s)
+
+
 def test_asynchronous_lighting_is_the_in_line_estimate_one_frame_later(tmp_path):
     """lighting.asynchronous with a worker that always finishes before the next frame (waited for here, as a slow
     camera would): frame 0 is estimated in line, every later frame hands its estimate to the worker and holds the

@@ -25,6 +25,7 @@ class RenderStage:
 
     def __init__(self, session: Session, intrinsics: Intrinsics, device: str):
         self.session, self.intrinsics = session, intrinsics
+        self.stride = session.render.stride
         self.renderer = get_renderer(session.render.shadows)
         self.scene = load_scene(session.objects)
         self.virtual = voxel_grid(self.scene, session.reconstruction.voxel_size, device)
@@ -41,7 +42,7 @@ class RenderStage:
 
     def window(self, pose: np.ndarray) -> tuple[int, int, int, int]:
         """Pixel box (x0, y0, x1, y1) (x1, y1 exclusive; empty when x1 <= x0 or y1 <= y0) holding the projection
-        of the objects' bounding box, widened by one lighting stride and a pixel (the reach of the seam band,
+        of the objects' bounding box, widened by one render stride and a pixel (the reach of the seam band,
         composite.refine_seam); the whole frame when a corner of that box is not in front of the camera."""
         W, H = self.intrinsics.width, self.intrinsics.height
         lo, hi = self.scene.bounds
@@ -51,22 +52,27 @@ class RenderStage:
             return 0, 0, W, H
         uv = cam[:, :2] / cam[:, 2:] @ np.diag([self.intrinsics.fx, self.intrinsics.fy]) + [self.intrinsics.cx,
                                                                                              self.intrinsics.cy]
-        m = self.session.lighting.stride + 1
+        m = self.stride + 1
         x0, y0 = np.clip(np.floor(uv.min(axis=0)).astype(int) - m, 0, [W, H])
         x1, y1 = np.clip(np.ceil(uv.max(axis=0)).astype(int) + m + 1, 0, [W, H])
         return int(x0), int(y0), int(x1), int(y1)
 
-    def __call__(self, camera: np.ndarray, sensor_depth: np.ndarray, grid: DenseGrid, maps: SurfaceMaps,
+    def __call__(self, camera: np.ndarray, sensor_depth: np.ndarray, grid: DenseGrid, maps: SurfaceMaps | None,
                  pose: np.ndarray, F: np.ndarray, gain: float = 1.0, sun: dict | None = None,
                  timings: dict[str, float] | None = None) -> np.ndarray:
         """Composite (H, W, 3 linear) of one frame: camera linear image, sensor depth (metres, 0 invalid),
-        real grid and its stride maps, pose (camera-to-world), lighting F (3, B*B), exposure gain and the
+        real grid and the frame's ray-cast maps (used when at the render stride, render.stride; else, or with
+        None, the stage casts its own), pose (camera-to-world), lighting F (3, B*B), exposure gain and the
         traced light (SolveDiagnostics.sun) when the solve found one. `timings`: gets the ms of its parts,
-        'render gbuffer' (the window's surface ray cast and the G-buffer), 'render shadows' (the renderer) and
-        'render composite' (host time; each part ends on its own read-back, so a device's work lands in it)."""
+        'render gbuffer' (the surface ray casts: the window's at every pixel, the render stride's when the frame's
+        maps are at another; and the G-buffer), 'render shadows' (the renderer) and 'render composite' (host time;
+        each part ends on its own read-back, so a device's work lands in it)."""
         t0 = time.perf_counter()
         rc, lc = self.session.reconstruction, self.session.lighting
         x0, y0, x1, y1 = self.window(pose)
+        if maps is None or maps.stride != self.stride:
+            maps = raycast_surface(grid, self.intrinsics, pose, rc.depth_min, rc.depth_max, stride=self.stride,
+                                   normal_smoothing=rc.normal_smoothing_voxels)
         real_depth = np.zeros(sensor_depth.shape, np.float32)   # the G-buffer reads its window alone
         surface = None
         if x1 > x0 and y1 > y0:   # the real surface at every pixel of the window: what hides the objects, the seam
