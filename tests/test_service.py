@@ -394,6 +394,50 @@ def test_the_next_frame_is_handed_in_and_runs_while_a_composite_is_encoded(tmp_p
     assert at["handed 1"] < at["done 0"] and at["process 1"] < at["encode end"]
 
 
+def test_frames_decode_two_at_a_time_and_are_answered_in_order(recording, monkeypatch):
+    """The server decodes a connection's frames DECODING (2) at once on helper threads and queues them in the order
+    they came: with decoding slowed down (frame 0 0.4 s, the others 0.1 s), two decodes overlap, never three;
+    frame 1, decoded first, still waits for frame 0; a frame whose PNG does not decode gets its error (frame 2)
+    and the rest are answered in order; a bye after them waits for every reply."""
+    import photoreg.service.server as server_module
+
+    real_decode, lock, state = server_module.decode_frame, threading.Lock(), {"now": 0, "most": 0}
+    decoded = []
+
+    def slow_decode(header, payload, intr, default_index):
+        with lock:
+            state["now"] += 1
+            state["most"] = max(state["most"], state["now"])
+        try:
+            time.sleep(0.4 if header.get("index") == 0 else 0.1)
+            return real_decode(header, payload, intr, default_index)
+        finally:
+            with lock:
+                state["now"] -= 1
+                decoded.append(header.get("index"))
+
+    monkeypatch.setattr(server_module, "decode_frame", slow_decode)
+    frames = list(open_recording(recording))[:5]
+    messages = [encode_frame(f) for f in frames]
+    header, payload = decode(messages[2])
+    payload = bytearray(payload)
+    payload[header["color"]["offset"] + 20:header["color"]["offset"] + 60] = b"\x00" * 40   # a corrupt colour PNG
+    messages[2] = raw_message(header, bytes(payload))
+    with ServerThread(ServerConfig(port=0, device="cpu", idle_timeout=60, processes=False, queue=8)) as running:
+        with ws_connect(running.server.url, compression=None) as ws:
+            ws.send(encode(hello_message(K, OPTIONS)))
+            assert json.loads(ws.recv(60))["type"] == "ready"
+            for m in messages:
+                ws.send(m)
+            ws.send(encode({"type": "bye"}))
+            replies = [json.loads(ws.recv(60)) for _ in range(6)]
+    assert state["most"] == 2 and decoded.index(1) < decoded.index(0), (state, decoded)
+    errors = [r for r in replies if r["type"] == "error"]
+    assert len(errors) == 1 and errors[0]["frame"] == 2, errors
+    assert [r["frame"] for r in replies if r["type"] == "lighting"] == [0, 1, 3, 4]
+    assert replies[-1]["type"] == "bye" and replies[-1]["frames_processed"] == 4 and replies[-1]["errors"] == 1
+
+
 def test_stream_reports_an_unreadable_frame_and_sends_the_rest(server, tmp_path):
     """`photoreg stream` of a recording with a corrupt colour image: the frames around it are read ahead, sent and
     answered in order; the bad one is named in summary.json's frames_skipped."""
