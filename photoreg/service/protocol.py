@@ -151,7 +151,7 @@ def ready_message(hello: Hello, device: str, queue: int, limits: Limits) -> dict
     return {"type": "ready", "version": PROTOCOL_VERSION, "device": device, "queue": queue,
             "intrinsics": hello.intrinsics.to_json(),
             "settings": {"lighting": vars(s.lighting), "reconstruction": vars(s.reconstruction),
-                         "use_poses": s.recording.use_poses, "shadows": s.render.shadows,
+                         "use_poses": s.recording.use_poses, "shadows": s.render.shadows, "render": vars(s.render),
                          "objects": len(s.objects), "composite": hello.composite if s.objects else None},
             "compositing": bool(s.objects), "limits": limits.to_json(), "notes": list(hello.notes)}
 
