@@ -424,7 +424,7 @@ class Pipeline:
         the worker free (and lighting.every due) hands its estimate to it."""
         lc, rc = self.session.lighting, self.session.reconstruction
         t_all = time.perf_counter() if t_start is None else t_start
-        F, diag, composite = None, None, None
+        F, diag, composite, region = None, None, None, None
         if pose is not None:
             self._frames += 1
             if self._in_flight is not None and self._in_flight[2].done():
@@ -453,6 +453,7 @@ class Pipeline:
             if self.render is not None:
                 with self._timed(t, "render"):
                     composite = self.render(prep.linear, prep.depth, grid, maps, pose, F.sh, gain, diag.sun, t)
+                region = self.render.last.region
         if F is None:  # no pose: keep the previous estimate (or darkness), flagged weak
             prev = self.prev_F if self.prev_F is not None else np.zeros((3, self.solver_cfg.fit_bands ** 2))
             F, diag = Lighting(prev.copy()), SolveDiagnostics(notes=["no pose: previous estimate repeated"])
@@ -464,4 +465,5 @@ class Pipeline:
         if not diag.weak:
             self.prev_F = F.sh
         t["total"] = (time.perf_counter() - t_all) * 1000.0
-        return FrameResult(frame.index, frame.timestamp, F, diag, sh.dominant_direction(F.sh), t, composite=composite)
+        return FrameResult(frame.index, frame.timestamp, F, diag, sh.dominant_direction(F.sh), t, composite=composite,
+                           composite_region=region)

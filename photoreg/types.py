@@ -129,3 +129,5 @@ class FrameResult:
     dominant_direction: np.ndarray
     timings_ms: dict[str, float] = field(default_factory=dict)
     composite: np.ndarray | None = None  # HxWx3 linear float32, when virtual objects were inserted
+    # box (x0, y0, x1, y1) outside which the composite is the frame's preprocessed linear colour, exactly
+    composite_region: tuple[int, int, int, int] | None = None

@@ -122,7 +122,7 @@ def test_objects_name_meshes_in_the_server_s_folder(tmp_path):
 def test_composite_messages_round_trip():
     linear = np.random.default_rng(0).random((6, 8, 3)).astype(np.float32)
     for encoding in ("png", "jpeg"):
-        header, payload = decode(composite_message(4, encode_composite(linear, encoding), encoding))
+        header, payload = decode(composite_message(4, encode_composite(linear_to_srgb(linear), encoding), encoding))
         index, enc, image = decode_composite(header, payload)
         got = cv2.cvtColor(cv2.imdecode(np.frombuffer(image, np.uint8), cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB)
         assert (index, enc, header["type"]) == (4, encoding, "composite") and got.shape == (6, 8, 3)
@@ -323,6 +323,35 @@ def test_streamed_composites_equal_the_direct_pipeline_s(tmp_path):
         composite = pipe.process(rec.frame(i)).composite
         got = cv2.cvtColor(cv2.imread(str(out / "composite" / f"{i:06d}.png")), cv2.COLOR_BGR2RGB)
         np.testing.assert_array_equal(got, linear_to_srgb(composite))
+
+
+def test_a_composite_crosses_to_the_server_as_its_region(tmp_path):
+    """A connection's pipeline hands the server only the box of the composite that differs from the frame
+    (host.CompositePatch): on the demo 81% of the frame, and the frame's colour with the box converted is the
+    whole composite in sRGB, pixel for pixel; with the luminance denoised (lighting.denoise) the pipeline's colour is
+    not the frame's, and the box is the whole frame."""
+    from photoreg.service.host import PipelineHost
+
+    demo = REPO / "data" / "demo"
+    rec = open_recording(demo)
+    frames = [rec.frame(i) for i in range(2)]
+    for denoise in ("none", "guided"):
+        s = load_session(demo / "session.toml")
+        s.device, s.lighting.rays, s.lighting.denoise = "cpu", 16, denoise
+        pipe = Pipeline(s, rec.intrinsics)
+        expected = [pipe.process(f).composite for f in frames]
+        pipe.close()
+        host = PipelineHost(False)
+        try:
+            host.open(s, rec.intrinsics).result()
+            patches = [host.process(f).result()[2] for f in frames]
+        finally:
+            host.close()
+        for f, patch, composite in zip(frames, patches, expected):
+            x0, y0, x1, y1 = patch.box
+            share = (x1 - x0) * (y1 - y0) / (rec.intrinsics.width * rec.intrinsics.height)
+            assert share < 1.0 if denoise == "none" else share == 1.0, (denoise, patch.box)
+            np.testing.assert_array_equal(patch.over(f.color), linear_to_srgb(composite))
 
 
 def test_frames_are_encoded_ahead_in_order_and_bounded(recording):

@@ -13,13 +13,15 @@ import multiprocessing as mp
 import signal
 import threading
 from concurrent.futures import Executor, Future, ProcessPoolExecutor, ThreadPoolExecutor
+from dataclasses import dataclass
 
 import numpy as np
 
 from ..config import Session
+from ..io.images import linear_to_srgb
 from ..pipeline import Pipeline
 from ..runner import result_record
-from ..types import Frame, Intrinsics
+from ..types import Frame, FrameResult, Intrinsics
 
 WARM_INTRINSICS = Intrinsics(64, 48, 60.0, 60.0, 31.5, 23.5, 1000.0)
 # The connection's pipeline, on the one thread that runs its calls: the connection's own thread, or the main thread
@@ -46,11 +48,39 @@ def _open_here(session: Session, intrinsics: Intrinsics) -> None:
     _local.pipeline = Pipeline(session, intrinsics)
 
 
-def _reply_here(frame: Frame) -> tuple[dict, int, np.ndarray | None]:
-    """(lighting record, frame index, the linear composite or None) of one frame: the server converts and encodes
-    the composite for the client while the pipeline runs the next frame."""
+@dataclass
+class CompositePatch:
+    """A frame's composite as its pipeline hands it to the server: the linear pixels of a box; outside the box the
+    composite is the frame's own colour. Only the box crosses from a connection's process (TUM with the bunny: a
+    third of the frame's 3.7 MB) and only the box is converted to sRGB."""
+
+    box: tuple[int, int, int, int]   # x0, y0, x1, y1 (exclusive)
+    linear: np.ndarray               # (y1 - y0, x1 - x0, 3) float32
+
+    def over(self, color: np.ndarray) -> np.ndarray:
+        """The composite in 8-bit sRGB: the frame's colour (H, W, 3 uint8) with the box's pixels converted."""
+        x0, y0, x1, y1 = self.box
+        out = color.copy()
+        out[y0:y1, x0:x1] = linear_to_srgb(self.linear)
+        return out
+
+
+def _patch(result: FrameResult) -> CompositePatch | None:
+    """The frame's composite as a CompositePatch: its region (FrameResult.composite_region) where the pipeline's
+    linear colour is the frame's own (lighting.denoise none: its 8-bit sRGB comes back exactly), else all of it."""
+    if result.composite is None:
+        return None
+    H, W = result.composite.shape[:2]
+    region = result.composite_region if _local.pipeline.session.lighting.denoise == "none" else None
+    x0, y0, x1, y1 = region if region is not None else (0, 0, W, H)
+    return CompositePatch((x0, y0, x1, y1), result.composite[y0:y1, x0:x1])
+
+
+def _reply_here(frame: Frame) -> tuple[dict, int, CompositePatch | None]:
+    """(lighting record, frame index, the composite or None) of one frame: the server converts and encodes the
+    composite for the client while the pipeline runs the next frame."""
     result = _local.pipeline.process(frame)
-    return result_record(result), result.index, result.composite
+    return result_record(result), result.index, _patch(result)
 
 
 def _close_here() -> None:
@@ -84,8 +114,8 @@ class PipelineHost:
                                "\"__main__\":` round that code (or ServerConfig(processes=False))") from e
 
     def process(self, frame: Frame) -> Future:
-        """A future of (lighting record, frame index, the linear composite or None); calls run in order, one at a
-        time, so a frame handed in while another runs is taken up as soon as that one is done."""
+        """A future of (lighting record, frame index, the composite as a CompositePatch or None); calls run in order,
+        one at a time, so a frame handed in while another runs is taken up as soon as that one is done."""
         return self.executor.submit(_reply_here, frame)
 
     def close(self) -> None:

@@ -19,7 +19,6 @@ import numpy as np
 
 from ..config import (LightingConfig, ObjectConfig, ReconstructionConfig, RenderConfig, Session, _check_object,
                       _fill, validate)
-from ..io.images import linear_to_srgb
 from ..io.intrinsics import checked_intrinsics
 from ..io.native import depth_to_png16
 from ..io.poses import check_pose
@@ -176,10 +175,10 @@ def _encode_rgb8(rgb8: np.ndarray, encoding: str, jpeg_quality: int, what: str) 
     return buf.tobytes()
 
 
-def encode_composite(linear: np.ndarray, encoding: str) -> bytes:
-    """A composite (H, W, 3 linear float) as the sRGB image bytes of a `composite` message: PNG lossless (the
+def encode_composite(image: np.ndarray, encoding: str) -> bytes:
+    """A composite (H, W, 3 8-bit sRGB, RGB order) as the image bytes of a `composite` message: PNG lossless (the
     pixels of `photoreg run`'s composite/NNNNNN.png), JPEG at JPEG_QUALITY."""
-    return _encode_rgb8(linear_to_srgb(linear), encoding, JPEG_QUALITY, "the composite")
+    return _encode_rgb8(image, encoding, JPEG_QUALITY, "the composite")
 
 
 def composite_message(index: int, image: bytes, encoding: str) -> bytes:

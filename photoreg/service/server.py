@@ -27,13 +27,14 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import cv2
+import numpy as np
 from websockets.asyncio.server import ServerConnection, serve
 from websockets.exceptions import ConnectionClosed
 from websockets.frames import CloseCode
 
 from ..device import resolve_device
 from ..types import Frame, Intrinsics
-from .host import PipelineHost
+from .host import CompositePatch, PipelineHost
 from .protocol import (CLIENT_TYPES, Limits, ProtocolError, bye_message, composite_message, decode, decode_frame,
                        encode, encode_composite, error_message, lighting_message, parse_hello, ready_message)
 
@@ -318,8 +319,9 @@ class Connection:
             self.running.append((item, time.perf_counter(), future))
 
     async def _work(self) -> None:
-        """Reply to the frames in the pipeline, in order, as each is done; a done frame's composite is converted to
-        sRGB and encoded on a helper thread while the next frame runs (10-20 ms at 640x480). A pipeline process that
+        """Reply to the frames in the pipeline, in order, as each is done; a done frame's composite (the box of it that
+        differs from the frame, host.CompositePatch) is converted to sRGB and encoded on a helper thread while the next
+        frame runs (10-20 ms at 640x480). A pipeline process that
         died ends the connection (error, then close code 1011)."""
         try:
             while True:
@@ -332,7 +334,7 @@ class Connection:
                 item, handed, future = self.running[0]
                 index = item.frame.index
                 try:
-                    record, done, composite = await asyncio.wrap_future(future)
+                    record, done, patch = await asyncio.wrap_future(future)
                 except BrokenExecutor as e:
                     log.error("%s: the connection's pipeline process stopped at frame %d: %s", self.peer, index, e)
                     self.counts["errors"] += 1
@@ -352,9 +354,9 @@ class Connection:
                 await self._send(lighting_message(record, self.counts["dropped"],
                                                   (time.perf_counter() - item.received) * 1000.0,
                                                   (handed - item.received) * 1000.0))
-                if composite is not None:
+                if patch is not None:
                     try:
-                        image = await asyncio.to_thread(encode_composite, composite, self.composite)
+                        image = await asyncio.to_thread(_encoded, patch, item.frame.color, self.composite)
                     except ValueError as e:
                         self.counts["errors"] += 1
                         await self._send(error_message("pipeline", f"frame {index}: {e}", index))
@@ -362,6 +364,11 @@ class Connection:
                     await self.ws.send(composite_message(done, image, self.composite))
         except ConnectionClosed:
             pass
+
+
+def _encoded(patch: CompositePatch, color: np.ndarray, encoding: str) -> bytes:
+    """The composite message's image of a frame: its colour with the patch's pixels, encoded."""
+    return encode_composite(patch.over(color), encoding)
 
 
 class PhotoregServer:
