@@ -67,6 +67,9 @@
 #   decodeab   a connection's frames decoded two at a time by the server: `photoreg stream` of TUM alone (--async; PNG
 #              frames, raw rgb8/u16, PNG with --window 3) and with the bunny (sessions/tum_fr1_rpy.toml, --async), this
 #              tree against the package in OLD, alternating, LIVE_ROUNDS (default 2) rounds (OUTDIR/decode_live_ab.json)
+#   patchab    the composite handed to the server as its changed box (host.CompositePatch): `photoreg stream` with the
+#              bunny (sessions/tum_fr1_rpy.toml) --async with PNG and with raw frames, and in line (composites compared),
+#              this tree against the package in OLD, alternating, LIVE_ROUNDS (default 2) rounds (OUTDIR/patch_live_ab.json)
 #   serve      benchmarks/serve_clients.py: SERVE_CLIENTS (default 4) `photoreg stream RECORDING` clients at once through
 #              `photoreg serve --device cuda` with and without --threads, SERVE_ROUNDS (default 1) rounds of
 #              frames SERVE_FRAMES (default 0:40), into OUTDIR/serve_clients.json
@@ -288,6 +291,13 @@ for step in "$@"; do
         "bare_window3=,--async --window 3" "bunny_async=sessions/tum_fr1_rpy.toml,--async" --device cuda \
         --meshes "$PHOTOREG_DATA/meshes" --frames "${LIVE_FRAMES:-0:100}" --rounds "${LIVE_ROUNDS:-2}" \
         --json "$out/decode_live_ab.json" ;;
+    patchab)
+      python3 -m photoreg run sessions/tum_fr1_rpy.toml --device cuda --frames 0:4 --out /tmp/run_warm --quiet > /dev/null
+      python3 benchmarks/live_ab.py "$OLD" "$rec" "bunny=sessions/tum_fr1_rpy.toml" \
+        "bunny_async=sessions/tum_fr1_rpy.toml,--async" \
+        "bunny_raw_async=sessions/tum_fr1_rpy.toml,--async --color rgb8 --depth u16" --device cuda \
+        --meshes "$PHOTOREG_DATA/meshes" --frames "${LIVE_FRAMES:-0:100}" --rounds "${LIVE_ROUNDS:-2}" \
+        --json "$out/patch_live_ab.json" ;;
     serve)
       python3 benchmarks/serve_clients.py "$rec" --device cuda --clients "${SERVE_CLIENTS:-4}" \
         --frames "${SERVE_FRAMES:-0:40}" --rounds "${SERVE_ROUNDS:-1}" --json "$out/serve_clients.json" ;;
