@@ -123,6 +123,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="ask the server to estimate the lighting beside the frames (lighting.asynchronous)")
     p.add_argument("--session", help="ask for what `photoreg run SESSION` does: the session file's [lighting], "
                                      "[render] and [[objects]] (meshes named by file name in the server's --meshes)")
+    p.add_argument("--render-stride", type=int, help="ask the server to sample the objects' shadows every n-th "
+                                                     "pixel (render.stride, default 4)")
     p.add_argument("--composite", choices=["jpeg", "png"], help="encoding of the composites the server sends for "
                                                                 "objects (default jpeg; png: lossless)")
     p.add_argument("--no-poses", action="store_true", help="ask the server to track the camera instead of "

@@ -95,8 +95,8 @@ def test_objects_name_meshes_in_the_server_s_folder(tmp_path):
     obj = {"mesh": "bunny.obj", "position": [0, 0, 0], "rotation": [0, 0, 90], "scale": 0.1, "albedo": [0.8, 0.8, 0.8]}
 
     def hello(mesh, meshes=tmp_path / "meshes", **extra):
-        msg = {**hello_message(K, {"objects": [{**obj, "mesh": mesh}], "render": {"shadows": "shadowmap", "stride": 2}}),
-               **extra}
+        options = {"objects": [{**obj, "mesh": mesh}], "render": {"shadows": "shadowmap", "stride": 2}}
+        msg = {**hello_message(K, options), **extra}
         return parse_hello(msg, "cpu", Limits(), meshes)
 
     h = hello("bunny.obj", composite="png")
@@ -300,22 +300,23 @@ def test_asynchronous_lighting_through_the_server(server, recording, tmp_path):
 
 
 def test_streamed_composites_equal_the_direct_pipeline_s(tmp_path):
-    """`photoreg stream data/demo --session data/demo/session.toml --composite png --every 2` through a server whose
-    mesh folder holds the demo's object: each frame's composite arrives (after its lighting) and equals, pixel for
-    pixel, what the pipeline composites in-process for that session (photoreg run's composite/NNNNNN.png), the
-    frame between estimates (lighting.every, a hello option) included."""
+    """`photoreg stream data/demo --session data/demo/session.toml --composite png --every 2 --render-stride 2`
+    through a server whose mesh folder holds the demo's object: each frame's composite arrives (after its lighting)
+    and equals, pixel for pixel, what the pipeline composites in-process for that session (photoreg run's
+    composite/NNNNNN.png), the frame between estimates (lighting.every, a hello option) included."""
     demo = REPO / "data" / "demo"
     with ServerThread(ServerConfig(port=0, device="cpu", idle_timeout=60, meshes=str(demo), processes=False)) as running:
         out = tmp_path / "out"
         assert main(["stream", str(demo), "--url", running.server.url, "--out", str(out), "--session",
                      str(demo / "session.toml"), "--frames", "0:3", "--rays", "16", "--composite", "png",
-                     "--every", "2", "--quiet"]) == 0
+                     "--every", "2", "--render-stride", "2", "--quiet"]) == 0
     summary = json.loads((out / "summary.json").read_text())
     assert summary["composites"] == 3 and summary["settings"]["composite"] == "png" and not summary["errors"]
+    assert summary["settings"]["render"]["stride"] == 2
     records = [json.loads(line) for line in (out / "lighting.jsonl").read_text().splitlines()]
     assert ["solve" in r["timings_ms"] for r in records] == [True, False, True]
     s = load_session(demo / "session.toml")
-    s.device, s.lighting.rays, s.lighting.every = "cpu", 16, 2
+    s.device, s.lighting.rays, s.lighting.every, s.render.stride = "cpu", 16, 2, 2
     s.reconstruction.block_count = ServerConfig().block_count
     rec = open_recording(demo)
     pipe = Pipeline(s, rec.intrinsics)

@@ -290,6 +290,8 @@ def stream_command(args) -> int:
         options["lighting"] = {**options.get("lighting", {}), **lighting}
     if args.voxel_size is not None:
         options["reconstruction"] = {**options.get("reconstruction", {}), "voxel_size": args.voxel_size}
+    if args.render_stride is not None:
+        options["render"] = {**options.get("render", {}), "stride": args.render_stride}
     if args.no_poses or not rec.has_poses:
         options["track"] = True
     out = Path(args.out) if args.out else None

@@ -6,9 +6,9 @@ the pipeline in the connection's own process, or with ServerConfig.processes off
 photoreg.service.host; reply). The queue between them is bounded and, when a frame arrives while it is full,
 drops the oldest waiting frame ('latest wins'), so a client faster than the pipeline gets fresh answers and
 memory stays bounded: per connection at most `queue` decoded frames waiting, HANDED in the pipeline, one
-composite being encoded, DECODING messages being decoded and websockets' small receive buffer. A client that does not
-read its replies stalls only its own worker (a send waits for its socket); every other connection keeps
-its own pipeline and queue. A session with objects (their meshes named in the server's mesh folder,
+composite being encoded, DECODING messages being decoded and websockets' small receive buffer. A client that
+does not read its replies stalls only its own worker (a send waits for its socket); every other connection
+keeps its own pipeline and queue. A session with objects (their meshes named in the server's mesh folder,
 --meshes) gets each frame's composite after its lighting reply.
 """
 from __future__ import annotations
