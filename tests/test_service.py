@@ -661,10 +661,14 @@ def test_messages_out_of_order_and_versions(server, recording):
 
 # Messages that are wrong whatever hypothesis draws: each must get exactly one error reply.
 # (finite floats: JSON has no infinity, and protocol.encode refuses one)
+def _nested(inner):
+    """Lists and objects of `inner` (a named function: hypothesis read the multi-line lambda it replaced as one that
+    ignores its argument, and warned)."""
+    return st.lists(inner, max_size=3) | st.dictionaries(st.text(max_size=6), inner, max_size=3)
+
+
 _junk_json = st.recursive(st.none() | st.booleans() | st.floats(allow_nan=False, allow_infinity=False)
-                          | st.text(max_size=8),
-                          lambda inner: st.lists(inner, max_size=3) | st.dictionaries(st.text(max_size=6), inner,
-                                                                                      max_size=3), max_leaves=8)
+                          | st.text(max_size=8), _nested, max_leaves=8)
 _not_a_number = st.none() | st.booleans() | st.text(max_size=8) | st.lists(st.integers(), max_size=3)
 
 
