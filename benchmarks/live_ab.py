@@ -21,7 +21,6 @@ from run_ab import ab_parser, ab_rounds
 from serve_clients import free_port
 
 
-
 def run(code_dir: Path, recording: str, session: str, flags: list[str], out: Path, a) -> dict:
     """One server and one stream with the package in code_dir; the stream's summary.json."""
     if out.exists():

@@ -129,5 +129,6 @@ class FrameResult:
     dominant_direction: np.ndarray
     timings_ms: dict[str, float] = field(default_factory=dict)
     composite: np.ndarray | None = None  # HxWx3 linear float32, when virtual objects were inserted
-    # box (x0, y0, x1, y1) outside which the composite is the frame's preprocessed linear colour, exactly
+    # box (x0, y0, x1, y1) outside which the composite is the frame's own colour, linearised (exactly: its 8-bit
+    # sRGB comes back); None: any pixel may differ
     composite_region: tuple[int, int, int, int] | None = None

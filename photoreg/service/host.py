@@ -66,13 +66,12 @@ class CompositePatch:
 
 
 def _patch(result: FrameResult) -> CompositePatch | None:
-    """The frame's composite as a CompositePatch: its region (FrameResult.composite_region) where the pipeline's
-    linear colour is the frame's own (lighting.denoise none: its 8-bit sRGB comes back exactly), else all of it."""
+    """The frame's composite as a CompositePatch: the box outside which it is the frame's own colour
+    (FrameResult.composite_region), or all of it where the pipeline gives none."""
     if result.composite is None:
         return None
     H, W = result.composite.shape[:2]
-    region = result.composite_region if _local.pipeline.session.lighting.denoise == "none" else None
-    x0, y0, x1, y1 = region if region is not None else (0, 0, W, H)
+    x0, y0, x1, y1 = result.composite_region if result.composite_region is not None else (0, 0, W, H)
     return CompositePatch((x0, y0, x1, y1), result.composite[y0:y1, x0:x1])
 
 
