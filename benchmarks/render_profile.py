@@ -42,12 +42,19 @@ def main() -> None:
     pipe = Pipeline(s, rec.intrinsics)
     stage, prof, walls = pipe.render, cProfile.Profile(), []
 
-    def profiled(*args, **kwargs):
-        t0 = time.perf_counter()
-        out = prof.runcall(stage, *args, **kwargs)
-        walls.append((time.perf_counter() - t0) * 1000.0)
-        return out
+    class Profiled:
+        """The stage, its calls profiled (the pipeline reads its other attributes too: `last`)."""
 
+        def __call__(self, *args, **kwargs):
+            t0 = time.perf_counter()
+            out = prof.runcall(stage, *args, **kwargs)
+            walls.append((time.perf_counter() - t0) * 1000.0)
+            return out
+
+        def __getattr__(self, name):
+            return getattr(stage, name)
+
+    profiled = Profiled()
     for k, frame in enumerate(iter_frames(rec, indices)):
         pipe.render = profiled if k >= a.warmup else stage
         pipe.process(frame)

@@ -364,29 +364,6 @@ def test_transfer_on_raycast_samples(room):
     np.testing.assert_array_equal(res.transfer, from_numpy.transfer)
 
 
-def test_two_ray_sets_in_one_pass(room):
-    """A second ray set (a light's disc) joins the SH set in one pass as an extra column, 1 on its rows weighted
-    D / D2: the SH columns are the SH set's own pass, bit for bit, and the extra column the second set's own pass
-    with its 4 / D2 (the voxel renderer's disc light)."""
-    _, poses, _, grid = room
-    maps = raycast_surface(grid, K320, poses[0], 0.1, 4.0, stride=16)
-    dirs, Y = make_direction_set(32, 3, seed=0)
-    cone = make_direction_set(8, 1, seed=5)[0]
-    joined = np.block([[Y, np.zeros((len(dirs), 1), np.float32)],
-                       [np.zeros((len(cone), 9), np.float32), np.full((len(cone), 1), len(dirs) / len(cone), np.float32)]])
-    both = radiance_transfer(grid, maps.vertex, maps.normal, np.concatenate([dirs, cone]), joined, VOXEL, 0.5,
-                             extra=1, scale=4.0 / len(dirs))
-    sh_only = radiance_transfer(grid, maps.vertex, maps.normal, dirs, Y, VOXEL, 0.5)
-    cone_only = radiance_transfer(grid, maps.vertex, maps.normal, cone, np.ones((len(cone), 1), np.float32), VOXEL, 0.5)
-    np.testing.assert_array_equal(both.transfer[:, :9], sh_only.transfer)
-    np.testing.assert_allclose(both.transfer[:, 9:], cone_only.transfer, rtol=1e-6, atol=1e-7)
-    assert (cone_only.transfer > 0).any()
-    with pytest.raises(ValueError, match="square"):   # without `extra` the table must be SH
-        radiance_transfer(grid, maps.vertex, maps.normal, np.concatenate([dirs, cone]), joined, VOXEL, 0.5)
-    with pytest.raises(ValueError, match="extra"):
-        radiance_transfer(grid, maps.vertex, maps.normal, dirs, Y, VOXEL, 0.5, extra=9)
-
-
 # --- determinism and the kernel cache ----------------------------------------------------------------
 
 def test_relaunch_is_identical_and_uses_the_loaded_kernels(room):

@@ -13,7 +13,7 @@ from scipy.spatial.transform import Rotation
 
 from photoreg.config import ObjectConfig
 from photoreg.kernels.raycast import raycast_surface
-from photoreg.kernels.transfer import VIRTUAL, any_blocked, make_direction_set, radiance_transfer
+from photoreg.kernels.transfer import VIRTUAL, any_blocked, make_direction_set, radiance_transfer, shaded_pass
 from photoreg.lighting import sh
 from photoreg.render.composite import RenderInput, composite, shade, upsample_ratio
 from photoreg.render.gbuffer import GBufferRenderer
@@ -235,6 +235,36 @@ def test_any_blocked_is_the_virtual_flags_of_the_ray_pass(tmp_path):
     assert not any_blocked(virt, pts[east], np.tile([1.0, 0, 0], (east.sum(), 1)), dirs, 0.03, 0.3).any()
 
 
+def test_shaded_pass_is_the_lighting_times_the_transfer(tmp_path):
+    """shaded_pass's one thread per point gives F.R_TR, F.R_TRV and their blocked shares of radiance_transfer's SH
+    projections (with a second ray set, a light's disc, that adds its own pass's shading, weighted 1 / its count,
+    and no blocked share)."""
+    scene = load_scene([_cube(tmp_path, scale=0.2)])
+    virt, floor = voxel_grid(scene, 0.02, "cpu"), _floor_grid()
+    dirs, Y = make_direction_set(32, 3, seed=1)
+    cone = make_direction_set(8, 1, seed=5)[0]
+    rng = np.random.default_rng(0)
+    xy = rng.uniform(-0.5, 0.5, (200, 2))
+    pts = np.c_[xy, np.zeros(len(xy))]
+    normals = np.c_[rng.normal(0, 0.3, (len(xy), 2)), np.ones(len(xy))]
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    F, colour = rng.uniform(-0.3, 1.0, (3, 9)), np.array([2.0, 1.5, 1.0])
+    table = np.c_[Y @ F.T, np.ones(len(dirs))] * 4 / len(dirs)
+    disc = np.c_[np.tile(colour / (np.pi * len(cone)), (len(cone), 1)), np.zeros(len(cone))]
+    out = shaded_pass(floor, virt, pts, normals, np.concatenate([dirs, cone]), np.concatenate([table, disc]), 0.03,
+                      0.3)
+    tr = radiance_transfer(floor, pts, normals, dirs, Y, 0.03, 0.3, virtual=virt)
+    ct = radiance_transfer(floor, pts, normals, cone, np.ones((len(cone), 1), np.float32), 0.03, 0.3, virtual=virt)
+    np.testing.assert_allclose(out[:, :3], tr.transfer @ F.T + ct.transfer * colour / (4 * np.pi), atol=2e-6)
+    np.testing.assert_allclose(out[:, 3:6], tr.transfer_rv @ F.T + ct.transfer_rv * colour / (4 * np.pi), atol=2e-6)
+    np.testing.assert_allclose(out[:, 6], sh.blocked_share(tr.transfer)[:, 0], atol=1e-6)
+    np.testing.assert_allclose(out[:, 7], sh.blocked_share(tr.transfer_rv)[:, 0], atol=1e-6)
+    shadowed = np.abs(out[:, 3:6] - out[:, :3]).max(axis=1) > 1e-3
+    assert 10 < shadowed.sum() < len(pts) and (out[:, 7] >= out[:, 6] - 1e-6).all()
+    with pytest.raises(ValueError, match="radiance"):
+        shaded_pass(floor, virt, pts, normals, dirs, table[:, :3], 0.03, 0.3)
+
+
 def _render_floor(tmp_path, shadows: str, stride: int = 2, surface: bool = False):
     """A cube on the real floor seen from above, lit from above: (camera, composite, layers, gbuffer); with
     `surface` the full-resolution real surface goes in too (composite.refine_seam)."""
@@ -274,9 +304,9 @@ def test_voxel_marches_the_real_grid_only_where_the_objects_block_a_ray(tmp_path
     import photoreg.render.voxel as voxel
 
     marched = []
-    real_transfer = voxel.radiance_transfer
-    monkeypatch.setattr(voxel, "radiance_transfer", lambda g, p, *a, **k: marched.append(len(p)) or
-                        real_transfer(g, p, *a, **k))
+    real_pass = voxel.shaded_pass
+    monkeypatch.setattr(voxel, "shaded_pass", lambda g, v, p, *a, **k: marched.append(len(p)) or
+                        real_pass(g, v, p, *a, **k))
     _, fast_out, fast, _ = _render_floor(tmp_path, "voxel", surface=True)
     fast_marched = list(marched)
     monkeypatch.setattr(voxel, "any_blocked", lambda g, p, *a, **k: np.ones(len(p), bool))

@@ -94,14 +94,15 @@ def shade(F: np.ndarray, transfer: np.ndarray) -> np.ndarray:
     return transfer[:, :K] @ F.T
 
 
-def bounce(F: np.ndarray, gain: float, tr: np.ndarray, trv: np.ndarray, real_radiance: np.ndarray,
+def bounce(shading: np.ndarray, real_radiance: np.ndarray,
            virtual_radiance: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Camera-unit shading without albedo under real (R_TR) and real+virtual (R_TRV) occlusion, with one
-    ambient bounce: directions blocked by real geometry show `real_radiance` (3,), those blocked only by
-    the virtual objects `virtual_radiance` (3,); returns (S_TR, S_TRV), each (N, 3)."""
-    b_tr, b_trv = sh.blocked_share(tr), sh.blocked_share(trv)
-    s_tr = gain * shade(F, tr) + b_tr * real_radiance
-    return s_tr, gain * shade(F, trv) + b_tr * real_radiance + np.maximum(b_trv - b_tr, 0.0) * virtual_radiance
+    ambient bounce, from a ray pass's rows (kernels.transfer.shaded_pass: the lighting's shading under each and the
+    blocked shares): directions blocked by real geometry show `real_radiance` (3,), those blocked only by the
+    virtual objects `virtual_radiance` (3,); returns (S_TR, S_TRV), each (N, 3)."""
+    b_tr, b_trv = shading[:, 6:7], shading[:, 7:8]
+    s_tr = shading[:, :3] + b_tr * real_radiance
+    return s_tr, shading[:, 3:6] + b_tr * real_radiance + np.maximum(b_trv - b_tr, 0.0) * virtual_radiance
 
 
 def shadow_ratio(s_tr: np.ndarray, s_trv: np.ndarray) -> np.ndarray:

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from photoreg.kernels.transfer import any_blocked, radiance_transfer
+from photoreg.kernels.transfer import any_blocked, shaded_pass
 from photoreg.lighting import sh
 from photoreg.lighting.parametric import ParametricLight, cone_directions
 from photoreg.render.composite import (Layers, RenderInput, at_stride, bounce, box_distance2, near_objects, seam_band,
@@ -47,39 +47,20 @@ def real_radiance(inp: RenderInput, rows: np.ndarray, cols: np.ndarray, ratio: n
     return (radiance if ratio is None else radiance * ratio[rows, cols]).mean(axis=0)
 
 
-def _transfers(inp: RenderInput, F: np.ndarray, light: ParametricLight | None, cone: np.ndarray | None,
-               points: np.ndarray, normals: np.ndarray):
-    """The ray pass at points: the SH transfer R_TR, R_TRV and the shading by the light's disc (`cone`: its rays)
-    under each, gain * c/pi * mean over the disc's rays of V max(n.w, 0) (composite units, zero without a light):
-    four arrays of one row per point (every point's rays are its own: a pass over several point sets at once gives
-    each set what its own pass would). The disc's rays join the SH set's in one pass, one column more: 1 on the
-    disc's rows, weighted D / len(cone) so that the pass's 4 / D gives the disc's own 4 / len(cone)."""
+def _pass(inp: RenderInput, F: np.ndarray, light: ParametricLight | None, cone: np.ndarray | None,
+          points: np.ndarray, normals: np.ndarray) -> np.ndarray:
+    """The ray pass at points (kernels.transfer.shaded_pass, (N, 8) rows): the shading by F's SH under R_TR and
+    R_TRV, plus the light's disc (`cone`: its rays), gain * c/pi * mean over the disc's rays of V max(n.w, 0)
+    (composite units), and the SH set's blocked shares. Every point's rays are its own: a pass over several point sets
+    at once gives each set what its own pass would."""
     dirs, Y = inp.directions(sh.bands_of(F.shape[1]))
-    D, K = Y.shape
+    weighted = np.full((len(dirs), 4), 4.0 / len(dirs))   # the SH set's dw / pi
+    weighted[:, :3] *= inp.gain * (Y @ F.T)
     if light is not None:
-        Y = np.block([[Y, np.zeros((D, 1), np.float32)],
-                      [np.zeros((len(cone), K), np.float32), np.full((len(cone), 1), D / len(cone), np.float32)]])
-        dirs = np.concatenate([dirs, cone])
-    t = radiance_transfer(inp.grid, points, normals, dirs, Y, inp.offset, inp.ray_length, virtual=inp.virtual,
-                          extra=Y.shape[1] - K, scale=4.0 / D)
-    if light is None:
-        zero = np.zeros((len(points), 3), np.float32)
-        return t.transfer, t.transfer_rv, zero, zero
-    k = inp.gain * light.colour / np.pi / 4.0   # the disc's column = (4 / len(cone)) sum_visible cos
-    return t.transfer[:, :K], t.transfer_rv[:, :K], t.transfer[:, K:] * k, t.transfer_rv[:, K:] * k
-
-
-def _shading(inp: RenderInput, F: np.ndarray, passes, l_real, l_virt):
-    """(S_TR, S_TRV) from (rows of) a ray pass of _transfers: F's SH transfer with one bounce
-    (composite.bounce) plus the disc light."""
-    tr, trv, d_tr, d_trv = passes
-    s_tr, s_trv = bounce(F, inp.gain, tr, trv, l_real, l_virt)
-    return s_tr + d_tr, s_trv + d_trv
-
-
-def _rows(passes, start: int, stop: int):
-    """Rows start:stop of every array of a _transfers pass."""
-    return tuple(a[start:stop] for a in passes)
+        disc = np.zeros((len(cone), 4))
+        disc[:, :3] = inp.gain * light.colour / (np.pi * len(cone))
+        weighted, dirs = np.concatenate([weighted, disc]), np.concatenate([dirs, cone])
+    return shaded_pass(inp.grid, inp.virtual, points, normals, dirs, weighted, inp.offset, inp.ray_length)
 
 
 def render_voxel(inp: RenderInput) -> Layers:
@@ -119,10 +100,10 @@ def render_voxel(inp: RenderInput) -> Layers:
     hit = np.flatnonzero(any_blocked(inp.virtual, points, normals, rays, inp.offset, inp.ray_length))
     # One ray pass for the object's pixels and the shadowed real points (few launches: each costs host time)
     n_obj = int(covered.sum())
-    passes = _transfers(inp, F, light, cone, np.concatenate([gb.window_position[covered], points[hit]]),
-                        np.concatenate([gb.window_normal[covered], normals[hit]]))
-    on_object = _rows(passes, 0, n_obj)
-    values = _object_colour(inp, _shading(inp, F, on_object, l_real, l_real)[1], covered)
+    passes = _pass(inp, F, light, cone, np.concatenate([gb.window_position[covered], points[hit]]),
+                   np.concatenate([gb.window_normal[covered], normals[hit]]))
+    on_object = passes[:n_obj]
+    values = _object_colour(inp, bounce(on_object, l_real, l_real)[1], covered)
     l_virt = values.mean(axis=0) if n_obj else np.zeros(3, np.float32)
 
     # shadow_ratio's eps guard averages over the shadowed points of each set (stride samples, seam) apart
@@ -130,8 +111,7 @@ def render_voxel(inp: RenderInput) -> Layers:
     split = int(np.searchsorted(hit, n_near))   # hit is sorted: the stride samples' rows come first
     for lo, hi in ((0, split), (split, len(hit))):
         if hi > lo:
-            ratio_pts[hit[lo:hi]] = shadow_ratio(*_shading(inp, F, _rows(passes, n_obj + lo, n_obj + hi), l_real,
-                                                           l_virt))
+            ratio_pts[hit[lo:hi]] = shadow_ratio(*bounce(passes[n_obj + lo:n_obj + hi], l_real, l_virt))
     ratio_s = np.ones(maps.vertex.shape, np.float32)
     ratio_s[rows, cols] = ratio_pts[:n_near]
     ratio = upsample_ratio(ratio_s, near, maps.stride, inp.camera.shape[:2])
@@ -144,7 +124,7 @@ def render_voxel(inp: RenderInput) -> Layers:
     close = near_objects(maps, distance2, CLOSE * float(np.max(inp.bounds[1] - inp.bounds[0])))
     if close.any():
         l_close = real_radiance(inp, *pixels(close), ratio_s)
-        values = _object_colour(inp, _shading(inp, F, on_object, l_close, l_close)[1], covered)
+        values = _object_colour(inp, bounce(on_object, l_close, l_close)[1], covered)
     region = union_box(gb.window, stride_box(near, maps.stride, ratio.shape[:2]))
     return Layers(_virtual_colour(inp, values, covered), gb.coverage, ratio, notes, region)
 
