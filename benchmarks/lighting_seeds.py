@@ -3,6 +3,7 @@ by 0.01-0.02 in si-RMSE with the samples drawn, so a change is compared on the s
 the solve's sample draws, the history's and the transfer's direction set (its random rotation).
 
 usage: python benchmarks/lighting_seeds.py --synth-dir /tmp/bench [--seeds 1,2,3] [--changes "defaults;stride 2"]
+       [--recordings tabletop,tabletop_overexposed_1.6x] (folders of 12 frames in --synth-dir instead of the list below)
 (the recordings of lighting_accuracy.py's tables, made there; prints per recording the mean over seeds of direction
 degrees, irradiance si-RMSE over the upper hemisphere (with its range) and flicker, then the means)
 """
@@ -32,17 +33,19 @@ def main() -> int:
     ap.add_argument("--seeds", default="1,2,3")
     ap.add_argument("--changes", default="defaults;stride 2;sample_box 3",
                     help="names of lighting_accuracy.py's ABLATIONS, separated by ';'")
+    ap.add_argument("--recordings", help="comma-separated folders of 12 frames in --synth-dir (default: RECORDINGS)")
     a = ap.parse_args()
+    recordings = [(f, f, 12) for f in a.recordings.split(",")] if a.recordings else RECORDINGS
     seeds = [int(x) for x in a.seeds.split(",")]
     changes = [c.strip() for c in a.changes.split(";")]
     unknown = [c for c in changes if c not in la.ABLATIONS]
     if unknown:
         ap.error(f"unknown changes {unknown}; known: {sorted(la.ABLATIONS)}")
-    missing = [f for _, f, _ in RECORDINGS if not (Path(a.synth_dir) / f / "lighting_gt.json").is_file()]
+    missing = [f for _, f, _ in recordings if not (Path(a.synth_dir) / f / "lighting_gt.json").is_file()]
     if missing:
         ap.error(f"{a.synth_dir}: no {missing} (make them with benchmarks/lighting_accuracy.py --ablations)")
     res = {}
-    for name, folder, frames in RECORDINGS:
+    for name, folder, frames in recordings:
         path = Path(a.synth_dir) / folder
         gt = load_gt(path)
         for change in changes:
@@ -53,7 +56,7 @@ def main() -> int:
             print(f"{name} | {change}: {v[:, 0].mean():.1f} deg, si-RMSE {v[:, 1].mean():.3f} "
                   f"({v[:, 1].min():.3f}-{v[:, 1].max():.3f}), flicker {v[:, 2].mean():.3f}", flush=True)
     for change in changes:
-        v = np.concatenate([res[name, change] for name, _, _ in RECORDINGS])
+        v = np.concatenate([res[name, change] for name, _, _ in recordings])
         print(f"mean | {change}: {v[:, 0].mean():.1f} deg, si-RMSE {v[:, 1].mean():.3f}, flicker {v[:, 2].mean():.3f}")
     return 0
 

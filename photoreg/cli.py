@@ -78,6 +78,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="frames re-rendered with a virtual object: comma-separated list, 'auto' or 'none'")
     p.add_argument("--no-noise", action="store_true", help="write clean depth only")
     p.add_argument("--mesh", help="mesh file for the tabletop scene's mesh object (default: a procedural cylinder)")
+    p.add_argument("--overexpose", type=float, default=1.0,
+                   help="times the chosen exposure: above 1 the brightest surfaces saturate, as a camera's do")
 
     p = sub.add_parser("score", help="official accuracy metrics of a run against ground truth")
     p.add_argument("out", help="output folder of a run (holds lighting.jsonl)")

@@ -64,6 +64,12 @@ class LightingConfig:
     regularization: float = 1e-2  # Tikhonov strength, relative to the data scale (measured best: tests/test_solver.py)
     mode: str = "rgb"             # rgb | white
     saturation_level: int = 250   # 8-bit value at or above which a pixel counts as saturated
+    # Saturated pixels (with valid depth) kept: a sample box holding some is measured as it is, one holding nothing
+    # else is a lower bound of the radiance (censored: photoreg.lighting.robust); false leaves every box with one out.
+    # For sunlit surfaces that saturate (a tabletop whose sunlit floor does, 5-10% of the pixels: 7 degrees / si-RMSE
+    # 0.13 against 20 / 0.24); off by default: where windows or lamps saturate (ICL-NUIM) it doubled the flicker
+    # and the held-out residual (benchmarks/lighting_accuracy.md, "Saturated pixels as lower bounds")
+    censored: bool = False
     black_level: int = 3          # 8-bit value at or below which a pixel counts as black
     denoise: str = "none"         # none | tvl1 | guided: edge-preserving luminance denoising
     # Robust lighting (issue 4; photoreg.lighting.robust, benchmarks/lighting_accuracy.md). All "off" values

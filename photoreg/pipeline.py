@@ -28,7 +28,7 @@ import numpy as np
 from .config import Session
 from .device import init_warp, keep_frame_memory, resolve_device
 from .kernels.raycast import raycast_surface
-from .kernels.samples import AGREES, CANDIDATE, sample_maps
+from .kernels.samples import AGREES, CANDIDATE, CLIPPED, sample_maps
 from .kernels.transfer import make_direction_set, radiance_transfer, visibility
 from .lighting import sh
 from .lighting.bounce import bounce_columns, observed_bounce_terms
@@ -139,12 +139,13 @@ class Pipeline:
         return frame.pose, []
 
     def _samples(self, prep: Prepared, maps, pose: np.ndarray,
-                 cap: int | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Radiance (box average), world points and normals at usable sample pixels (the maps' stride: lighting.stride,
-        or GAIN_STRIDE for a held frame's gain) whose fused surface
-        agrees with the frame's depth (photoreg.lighting.samples): at most `cap` (default lighting.max_samples)
-        of them, a random subset as the solve would take. Only a surplus of candidates is checked, so the cost
-        does not grow with the resolution (stride 1 at 640x480: 8000 samples of 300000 pixels)."""
+                 cap: int | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Radiance (box average), world points, normals and whether the box holds clipped pixels alone
+        (lighting.censored: a lower bound) at usable sample pixels (the maps' stride: lighting.stride, or GAIN_STRIDE for a held frame's
+        gain) whose fused surface agrees with the frame's depth (photoreg.lighting.samples): at most `cap` (default
+        lighting.max_samples) of them, a random subset as the solve would take. Only a surplus of candidates is
+        checked, so the cost does not grow with the resolution (stride 1 at 640x480: 8000 samples of 300000
+        pixels)."""
         lc = self.session.lighting
         st = maps.stride
         gap = lc.max_depth_gap_voxels * self.session.reconstruction.voxel_size
@@ -153,12 +154,13 @@ class Pipeline:
         if (checked is None or checked[0] is not prep or checked[1] is not maps
                 or checked[2] != self.sample_kernel):
             checked = (prep, maps, self.sample_kernel,
-                       strided_box(prep, st, lc.sample_box) if not self.sample_kernel else
-                       sample_maps(prep.linear, prep.usable, prep.depth, self.intrinsics, pose, maps,
+                       strided_box(prep, st, lc.sample_box, lc.censored) if not self.sample_kernel else
+                       sample_maps(prep.linear, prep.usable.view(np.uint8) + 2 * prep.clipped.view(np.uint8)
+                                   if lc.censored else prep.usable, prep.depth, self.intrinsics, pose, maps,
                                    lc.max_normal_angle, gap, self.device, lc.sample_box))
             self._checked = checked   # one tuple, replaced whole: the worker and the frames read it without a lock
         if not self.sample_kernel:
-            radiance, usable = checked[3]
+            radiance, usable, clipped = checked[3]
             cand = np.flatnonzero(usable & maps.valid)
 
             def agrees(idx: np.ndarray) -> np.ndarray:
@@ -166,7 +168,9 @@ class Pipeline:
                 return agreement(prep.depth, self.intrinsics, pose, r * st, c * st, maps.depth[r, c],
                                  maps.normal[r, c], max(2, st), lc.max_normal_angle, gap)
         else:
-            radiance, flags = checked[3].radiance, checked[3].flags.ravel()
+            radiance, flags = checked[3].radiance, checked[3].flags
+            clipped = (flags & CLIPPED) > 0
+            flags = flags.ravel()
             cand = np.flatnonzero(flags & CANDIDATE)
 
             def agrees(idx: np.ndarray) -> np.ndarray:
@@ -179,7 +183,7 @@ class Pipeline:
         if cap is not None and ok.size > cap:
             ok = np.sort(rng.choice(ok, cap, replace=False))
         r, c = np.divmod(ok, ws)
-        return radiance[r, c], maps.vertex[r, c], maps.normal[r, c]
+        return radiance[r, c], maps.vertex[r, c], maps.normal[r, c], clipped[r, c]
 
     def _traced(self, n: int) -> tuple[np.ndarray, int | None]:
         """Rows of the frame's n samples whose transfer is traced, and how many kept samples join them (None:
@@ -234,7 +238,8 @@ class Pipeline:
             # the SH part of the joint solve holds only what the traced light leaves: regularised more (config.py)
             cfg = dataclasses.replace(cfg, regularization=lc.sun_regularization)
         args = (data.radiance, data.transfer, data.normals, data.visible, cfg)
-        kwargs = dict(points=data.points, reference=previous, terms=terms, start=start, current=current)
+        kwargs = dict(points=data.points, reference=previous, terms=terms, start=start, current=current,
+                      clipped=data.clipped)
         if self._solver is not None:   # lighting.solve_process: the same function, in the child process
             try:
                 return self._solver.submit(solve, *args, **kwargs).result()
@@ -297,18 +302,19 @@ class Pipeline:
         temporal filter."""
         lc, rc = self.session.lighting, self.session.reconstruction
         with self._timed(t, "sample"):
-            radiance, points, normals = self._samples(prep, maps, pose)
+            radiance, points, normals, clipped = self._samples(prep, maps, pose)
         with self._timed(t, "transfer"):
             traced, kept = self._traced(len(points))
             offset = lc.ray_offset_voxels * rc.voxel_size
             tr = radiance_transfer(grid, points[traced], normals[traced], self.dirs, self.Y, offset=offset,
                                    ray_length=lc.ray_length, hit_distances=self.observed_bounce)
         with self._timed(t, "solve"):
-            gain = self.surface.gain(points, radiance)[0] if lc.exposure else 1.0
+            seen = ~clipped   # the exposure gain and the fused luminance from unsaturated colour alone
+            gain = self.surface.gain(points[seen], radiance[seen])[0] if lc.exposure else 1.0
             bounce = (bounce_columns(tr, points[traced], normals[traced], self.dirs, offset, self.surface)
                       if self.observed_bounce else np.zeros((len(traced), 2)))
             current = Samples(radiance[traced] / gain, tr.transfer, normals[traced], points[traced],
-                              tr.visible_fraction, bounce)
+                              tr.visible_fraction, bounce, clipped[traced])
             data = self.history.with_current(current, kept) if self.history is not None else current
             previous = self.filter.prediction() if self.filter is not None else self.prev_F
         sun, sol, own = self._lighting(grid, current, data, previous, t)
@@ -341,7 +347,7 @@ class Pipeline:
                 filtered, diag.change_detected = self.filter.update(sol, new_view)
                 F = Lighting(filtered)
             if self.surface is not None:
-                self.surface.update(points, radiance / gain)
+                self.surface.update(points[seen], radiance[seen] / gain)
         return F, diag, gain
 
     def _estimate_beside(self, index: int, prep: Prepared, maps, pose: np.ndarray, grid):
@@ -385,8 +391,8 @@ class Pipeline:
         gain = 1.0
         if self.session.lighting.exposure:
             with self._timed(t, "sample"):
-                radiance, points, _ = self._samples(prep, maps, pose, GAIN_SAMPLES)
-                gain = self.surface.gain(points, radiance)[0]
+                radiance, points, _, clipped = self._samples(prep, maps, pose, GAIN_SAMPLES)
+                gain = self.surface.gain(points[~clipped], radiance[~clipped])[0]
         note = (f"lighting of frame {index}, estimated beside the frames since (lighting.asynchronous)"
                 if self._worker is not None else
                 f"lighting of frame {index} held (lighting.every = {self.session.lighting.every})")

@@ -11,6 +11,7 @@ from .io.images import srgb_to_linear
 from .types import Frame
 
 
+
 @dataclass
 class Prepared:
     """A frame ready for fusion and sampling."""
@@ -18,24 +19,32 @@ class Prepared:
     linear: np.ndarray      # HxWx3 float32 linear radiance (camera units)
     depth: np.ndarray       # HxW float32 metres, 0 where invalid or out of range
     usable: np.ndarray      # HxW bool: colour neither saturated nor black, depth valid
+    clipped: np.ndarray     # HxW bool: colour saturated (not black), depth valid: the radiance is at least what it shows
     saturated_fraction: float
     black_fraction: float
     valid_depth_fraction: float
 
 
-def strided_box(prep: Prepared, stride: int, box: int = 0) -> tuple[np.ndarray, np.ndarray]:
-    """(radiance, usable) at the pixels (r * stride, c * stride): the linear radiance averaged over an odd box of
-    `box` pixels (0: stride | 1, the stride's cell) centred on the pixel (less noise at no extra cost), and whether
-    the whole box is usable; a box of 1 is the pixel's own."""
+def strided_box(prep: Prepared, stride: int, box: int = 0,
+                censored: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(radiance, usable, clipped) at the pixels (r * stride, c * stride): the linear radiance averaged over an odd
+    box of `box` pixels (0: stride | 1, the stride's cell) centred on the pixel (less noise at no extra cost), and
+    whether the whole box is usable; a box of 1 is the pixel's own. `censored` (lighting.censored): a box may hold
+    clipped pixels too (a few of them pull its mean down a little), and `clipped` says which boxes hold nothing
+    else (their mean is a lower bound of the radiance); else it is all False."""
     box = box or (stride | 1)
+    fit = (prep.usable | prep.clipped) if censored else prep.usable
+    clipped = prep.clipped if censored else np.zeros_like(prep.clipped)
     if box == 1:
-        return (prep.linear, prep.usable) if stride == 1 else (prep.linear[::stride, ::stride],
-                                                               prep.usable[::stride, ::stride])
+        return (prep.linear, fit, clipped) if stride == 1 else (prep.linear[::stride, ::stride], fit[::stride, ::stride],
+                                                                clipped[::stride, ::stride])
     k = (box, box)
     radiance = cv2.boxFilter(prep.linear, -1, k, borderType=cv2.BORDER_REFLECT)[::stride, ::stride]
-    # the whole box usable: an erosion (0.2 ms at 640x480 against 0.5 for a box filter of the mask)
-    usable = cv2.erode(prep.usable.view(np.uint8), np.ones(k, np.uint8), borderType=cv2.BORDER_REFLECT)
-    return radiance, usable[::stride, ::stride] > 0
+    # the whole box usable (or clipped): an erosion (0.2 ms at 640x480 against 0.5 for a box filter of the mask)
+    usable = cv2.erode(fit.view(np.uint8), np.ones(k, np.uint8), borderType=cv2.BORDER_REFLECT)
+    if censored:
+        clipped = cv2.erode(clipped.view(np.uint8), np.ones(k, np.uint8), borderType=cv2.BORDER_REFLECT) > 0
+    return radiance, usable[::stride, ::stride] > 0, clipped[::stride, ::stride]
 
 
 def _denoise_luminance(linear: np.ndarray, method: str) -> np.ndarray:
@@ -97,4 +106,5 @@ def prepare(frame: Frame, light: LightingConfig, recon: ReconstructionConfig) ->
     def share(mask: np.ndarray) -> float:
         return cv2.countNonZero(mask.view(np.uint8)) / n   # 15x faster than mask.sum()
 
-    return Prepared(linear, d, valid & ~saturated & ~black, share(saturated), share(black), share(valid))
+    return Prepared(linear, d, valid & ~saturated & ~black, valid & saturated & ~black, share(saturated),
+                    share(black), share(valid))

@@ -21,7 +21,7 @@ from scenes import write_recording
 def frame_samples(frame: int, n: int, k: int = 9) -> Samples:
     """n samples whose radiance holds their frame's number (to count them later)."""
     return Samples(np.full((n, 3), float(frame)), np.zeros((n, k), np.float32), np.tile([0.0, 0.0, 1.0], (n, 1)),
-                   np.zeros((n, 3)), np.ones(n), np.zeros((n, 2)))
+                   np.zeros((n, 3)), np.ones(n), np.zeros((n, 2)), np.zeros(n, bool))
 
 
 def test_older_views_fade():

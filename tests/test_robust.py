@@ -716,8 +716,8 @@ def test_pipeline_samples_are_capped_random_and_checked():
     frame = Frame(0, 0.0, color, depth, k, pose, source="synthetic")
     prep, pose, _ = pipe.observe(frame, {})
     maps = raycast_surface(pipe.volume.dense_grid(), k, pose, 0.1, 5.0, stride=1)
-    radiance, points, normals = pipe._samples(prep, maps, pose)
-    assert len(points) == 300 and np.isfinite(radiance).all()
+    radiance, points, normals, clipped = pipe._samples(prep, maps, pose)
+    assert len(points) == 300 and np.isfinite(radiance).all() and clipped.shape == (300,)
     cam = (points - pose[:3, 3]) @ pose[:3, :3]                     # world -> camera
     rows = np.round(cam[:, 1] / cam[:, 2] * k.fy + k.cy).astype(int)
     cols = np.round(cam[:, 0] / cam[:, 2] * k.fx + k.cx).astype(int)
@@ -781,3 +781,33 @@ def test_pipeline_exposure_gain_keeps_the_lighting_scale():
     on, off = np.array(band0[True]), np.array(band0[False])
     assert np.abs(on / on[2] - 1).max() < 0.15
     assert off[4] / off[2] > 1.3 and off[6] / off[4] < 0.7
+
+
+def test_clipped_samples_are_lower_bounds():
+    """Clipped (censored) samples say only that the radiance is at least what they show: where the fit predicts more
+    they do not pull it down (the fit of a third of the samples shown at half their radiance equals the fit without
+    them, where taken at face value they darken it by a tenth), where it predicts less they pull it up; with
+    `clipped` all False the plain solve, exactly; every sample clipped (a saturated frame): finite and weak."""
+    rng = np.random.default_rng(3)
+    radiance, transfer, normals, visible, _, _ = scene(rng, albedos=((0.6, 0.6, 0.6), (0.7, 0.5, 0.3)))
+    points = normals * 0.5 + rng.normal(0, 0.02, normals.shape)   # neighbours in space share normals and region
+    cfg = SolverConfig(**ROBUST)
+    full = solve(radiance, transfer, normals, visible, cfg, points=points).lighting.sh
+    plain = solve(radiance, transfer, normals, visible, cfg, points=points, clipped=np.zeros(len(radiance), bool))
+    np.testing.assert_array_equal(plain.lighting.sh, full)
+    pick = rng.random(len(radiance)) < 0.3
+    low = np.where(pick[:, None], 0.5 * radiance, radiance)
+    dropped = solve(low, transfer, normals, visible, cfg, points=points, mask=~pick).lighting.sh
+    as_is = solve(low, transfer, normals, visible, cfg, points=points).lighting.sh
+    bounded = solve(low, transfer, normals, visible, cfg, points=points, clipped=pick)
+    assert np.abs(bounded.lighting.sh - dropped).max() < 0.02 * np.abs(dropped).max()
+    assert (as_is[:, 0] < 0.92 * dropped[:, 0]).all()
+    assert any("lower bounds" in n for n in bounded.diagnostics.notes)
+    high = np.where(pick[:, None], 1.5 * radiance, radiance)
+    raised = solve(high, transfer, normals, visible, cfg, points=points, clipped=pick).lighting.sh
+    assert (raised[:, 0] > 1.02 * bounded.lighting.sh[:, 0]).all()
+    every = solve(np.full_like(radiance, 0.9), transfer, normals, visible, cfg, points=points,
+                  clipped=np.ones(len(radiance), bool))
+    assert np.isfinite(every.lighting.sh).all() and every.diagnostics.weak
+    with pytest.raises(ValueError, match="clipped"):
+        solve(radiance, transfer, normals, visible, cfg, clipped=pick[:-1])

@@ -193,6 +193,18 @@ def test_plane_depth_lands_on_floor(tmp_path):
         assert np.abs(pts[:, 2]).max() < 0.01
 
 
+def test_overexposed_recording_saturates(tmp_path):
+    """--overexpose K: K times the chosen exposure (in lighting_gt.json, whose SH the estimate should match times
+    it), so the brightest surfaces saturate as a camera's do; the command line reproducing it names it."""
+    roots = [generate(SynthConfig("plane", str(tmp_path / f"x{k}"), frames=1, width=48, height=32, spp=2,
+                                  insert_frames="none", overexpose=k), log=None) for k in (1.0, 2.5)]
+    exposure = [json.loads((r / "lighting_gt.json").read_text())["exposure"] for r in roots]
+    assert exposure[1] == pytest.approx(2.5 * exposure[0])
+    saturated = [(cv2.imread(str(r / "rgb" / "000000.png")).max(axis=2) >= 250).mean() for r in roots]
+    assert saturated[0] < 0.02 and saturated[1] > 0.3
+    assert "--overexpose 2.5" in SynthConfig("plane", "o", overexpose=2.5).command_line()
+
+
 @pytest.fixture(scope="module")
 def recording(tmp_path_factory):
     """A tiny tabletop recording made through the CLI (handheld camera, noisy + clean depth, inserts)."""
@@ -331,6 +343,7 @@ def test_kinect_like_noise():
     (["plane", "--env", "/nonexistent/sky.hdr"], "no such HDR file"),
     (["plane", "--insert-frames", "1,99", "--frames", "4"], "outside 0..3"),
     (["corner", "--mesh", "bunny.obj"], "--mesh is used by the tabletop scene only"),
+    (["plane", "--overexpose", "0"], "--overexpose 0"),
 ])
 def test_bad_input_is_named(tmp_path, capsys, argv, message):
     assert cli.main(["synth", *argv[:1], "--out", str(tmp_path / "o"), *argv[1:]]) == 2

@@ -5,8 +5,9 @@ checks exist: that module's docstring), with the same flags and radiance to floa
 (tests/test_pipeline.py). For the map pixel (r, c), at image pixel (r * stride, c * stride):
 - radiance: the linear colour averaged over an odd box (lighting.sample_box; stride | 1 by default) centred there,
   mirrored at the image border (OpenCV's BORDER_REFLECT); a box of 1 is the pixel's own;
-- CANDIDATE: the whole box is usable (colour neither saturated nor black, depth valid) and the ray cast found a
-  surface there;
+- CANDIDATE: the whole box is usable (colour neither saturated nor black, depth valid; or clipped, where the
+  usable map says so: lighting.censored) and the ray cast found a surface there;
+- CLIPPED: a candidate whose box holds clipped pixels alone (its radiance is a lower bound);
 - AGREES: the fused surface agrees with the frame's depth map: depth within `max_gap` metres, normal within the
   angle of `min_cos` of the depth map's (central differences over `step` pixels, float64 like the host's; none
   where a neighbour is missing or off the image).
@@ -30,6 +31,7 @@ wp = init_warp()
 
 CANDIDATE = wp.constant(1)
 AGREES = wp.constant(2)
+CLIPPED = wp.constant(4)
 
 
 @dataclass
@@ -37,7 +39,7 @@ class SampleMaps:
     """Per map pixel (h, w) at image pixels (r * stride, c * stride)."""
 
     radiance: np.ndarray   # (h, w, 3) float32 linear colour, box-averaged (module docstring); 0 without a surface
-    flags: np.ndarray      # (h, w) uint8: CANDIDATE | AGREES bits
+    flags: np.ndarray      # (h, w) uint8: CANDIDATE | AGREES | CLIPPED bits
 
 
 @wp.func
@@ -81,18 +83,22 @@ def _sample_maps(linear: wp.array2d(dtype=wp.vec3), usable: wp.array2d(dtype=wp.
     h, w = linear.shape[0], linear.shape[1]
     total = wp.vec3(0.0, 0.0, 0.0)
     whole = int(1)
+    clipped = CLIPPED
     for dy in range(-half, half + 1):
         yy = _mirror(y + dy, h)
         for dx in range(-half, half + 1):
             xx = _mirror(x + dx, w)
             total = total + linear[yy, xx]
-            if usable[yy, xx] == wp.uint8(0):
+            u = usable[yy, xx]
+            if u == wp.uint8(0):
                 whole = 0
+            if u != wp.uint8(2):
+                clipped = 0
     k = 2 * half + 1
     radiance[r, tc] = total / float(k * k)
     out = int(0)
     if whole == 1:
-        out = CANDIDATE
+        out = CANDIDATE | clipped
         z = depth[y, x]
         if wp.abs(z - zs) <= max_gap and z > 0.0:
             # the depth map's normal: cross product of the row and column differences, negated to face the camera
@@ -114,10 +120,11 @@ def _sample_maps(linear: wp.array2d(dtype=wp.vec3), usable: wp.array2d(dtype=wp.
 
 def sample_maps(linear: np.ndarray, usable: np.ndarray, depth: np.ndarray, intr: Intrinsics, pose: np.ndarray,
                 maps, max_angle_deg: float, max_gap: float, device: str, box: int = 0) -> SampleMaps:
-    """Box radiance and CANDIDATE / AGREES flags (module docstring) at the pixels of the ray-cast `maps`
+    """Box radiance and CANDIDATE / AGREES / CLIPPED flags (module docstring) at the pixels of the ray-cast `maps`
     (photoreg.kernels.raycast.SurfaceMaps, on `device`) of a frame: `linear` (H, W, 3) float32, `usable`
-    (H, W) bool, `depth` (H, W) float32 metres (0 invalid), camera-to-world `pose`; an odd `box` of pixels
-    (0: stride | 1). The depth map's normal spans max(2, stride) pixels."""
+    (H, W) uint8 (0 unusable, 1 usable, 2 clipped) or bool, `depth` (H, W) float32 metres (0 invalid),
+    camera-to-world `pose`; an odd `box` of pixels (0: stride | 1). The depth map's normal spans max(2, stride)
+    pixels."""
     st = maps.stride
     h, w = maps.depth.shape
     box = box or (st | 1)

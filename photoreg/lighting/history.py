@@ -41,6 +41,7 @@ class Samples:
     points: np.ndarray     # (N, 3) world, metres
     visible: np.ndarray    # (N,) unoccluded share of the hemisphere
     bounce: np.ndarray     # (N, 2) bounce columns at the sample's own frame (photoreg.lighting.bounce; else zeros)
+    clipped: np.ndarray    # (N,) bool: saturated colour, the radiance a lower bound (lighting.censored)
 
     def __len__(self) -> int:
         return self.radiance.shape[0]

@@ -53,6 +53,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.linalg.lapack import dpotrf as _potrf, dpotrs as _potrs
+from scipy.spatial import cKDTree
 
 from ..types import Lighting, SolveDiagnostics
 from . import albedo as alb
@@ -162,6 +163,7 @@ class _Setup:
     samples: np.ndarray  # indices of the fitted samples
     w0: np.ndarray       # normal_weights of the samples, per first-pass region (before any hold-out)
     labels: np.ndarray | None  # the first-pass regions (None: one albedo)
+    clipped: np.ndarray        # which of the samples are clipped (solve's `clipped`)
 
 
 def _setup_key(cfg: SolverConfig, min_count: int) -> tuple:
@@ -430,6 +432,12 @@ def _albedo_step(Gm, hm, F, counts, cfg: SolverConfig, prior=None, G=None, term_
     return rho / scale, scale
 
 
+def _albedo_sums(regions: "_Regions", Gm, hm, w: np.ndarray, clip: np.ndarray):
+    """The per-region sums (G_m, h_m) that estimate albedos: the fit's own (`Gm`, `hm` at weights w) without the
+    clipped samples' rows (a saturated colour is no measure of the albedo)."""
+    return (Gm, hm) if not clip.any() else regions.grams(w * ~clip)[:2]
+
+
 def _as_sh(F: np.ndarray, term_sh: np.ndarray | None) -> np.ndarray:
     """SH (3, K) of a solution: F itself, or with extra terms (term_sh (p, K), zero rows for local terms)
     its SH part plus sum_j e_j * term j's SH."""
@@ -544,6 +552,33 @@ def _split_mixed(labels, A, I, F, w, points, normals, min_count: int) -> np.ndar
     return alb.split_by_geometry(labels, flagged, points, normals, min_count) if flagged else labels
 
 
+def _with_clipped(labels: np.ndarray, clipped: np.ndarray, points: np.ndarray | None) -> np.ndarray:
+    """`labels` with every clipped sample in the region of its nearest unclipped labelled sample in space (a
+    saturated colour says nothing of the albedo); -1 for them without points, all in region 0 when no sample is
+    labelled (a saturated frame: one unknown albedo)."""
+    if not clipped.any():
+        return labels
+    out = np.where(clipped, -1, labels)
+    src = np.flatnonzero(out >= 0)
+    if src.size == 0:
+        return np.where(clipped, 0, out)
+    if points is not None:
+        out[clipped] = out[src[cKDTree(points[src]).query(points[clipped])[1]]]
+    return out
+
+
+def _first_regions(I: np.ndarray, clipped: np.ndarray, points: np.ndarray | None, cfg: SolverConfig,
+                   min_count: int) -> np.ndarray:
+    """First-pass (colour) albedo regions of the unclipped samples; the clipped ones join their neighbours'
+    (_with_clipped)."""
+    if not clipped.any():
+        return alb.cluster(alb.colour_features(I, with_intensity=False), cfg.chroma_bandwidth, min_count)
+    labels = -np.ones(len(I), dtype=np.int64)
+    labels[~clipped] = alb.cluster(alb.colour_features(I[~clipped], with_intensity=False), cfg.chroma_bandwidth,
+                                   min_count)
+    return _with_clipped(labels, clipped, points)
+
+
 def _lit(columns: np.ndarray, terms: list[Term]) -> np.ndarray | None:
     """Samples (N,) that the distant-light terms (a traced light) reach: a column over half the median of its
     positive values (the penumbra's outer half counts as shadow); None without such a term."""
@@ -560,7 +595,7 @@ def _lit(columns: np.ndarray, terms: list[Term]) -> np.ndarray | None:
 
 def solve(radiance, transfer, normals, visible, cfg: SolverConfig, prior=None, mask=None,
           points=None, reference=None, terms: list[Term] | None = None, start: Solution | None = None,
-          current: int | None = None) -> Solution:
+          current: int | None = None, clipped=None) -> Solution:
     """Robust lighting of one frame (module docstring). Inputs as solver.solve_lighting, plus optional
     world `points` (N, 3) for spatial hold-out folds and `reference` (3, B'*B'), the previous lighting:
     its colour balance fixes the albedo scale (instead of cfg.albedo_reference) and it is returned
@@ -574,11 +609,17 @@ def solve(radiance, transfer, normals, visible, cfg: SolverConfig, prior=None, m
     (colour) albedo regions are reused when it fitted the same samples with the same settings (same result,
     less work). `current`: the inputs' first `current` rows are the current view's, the rest earlier views' (the
     pipeline's history): Solution.current_system then holds the normal equations over the current view's rows
-    alone, for the temporal filter's change test."""
+    alone, for the temporal filter's change test. `clipped` (N,) bool: samples whose colour saturated (lighting.censored),
+    censored observations: their radiance is a lower bound, so they are kept whatever cfg.saturation_level says; at
+    every iteration a clipped sample's value is the larger of what it shows and what the fit predicts (no residual
+    where the fit predicts more, a pull up where it predicts less: the censored fit by imputation), and it neither
+    finds nor estimates albedo regions (it takes its nearest neighbour's region). Left out, the sunlit surfaces a
+    camera saturates went missing from the fit and took the sun's share with them (benchmarks/lighting_accuracy.md,
+    "Saturated pixels as lower bounds")."""
     b_fit = cfg.fit_bands
     k_fit = b_fit * b_fit
     radiance, transfer, normals, idx, prior, notes = select_samples(radiance, transfer, normals, visible, cfg,
-                                                                    b_fit, prior, mask)
+                                                                    b_fit, prior, mask, clipped)
     prior_fit = prior if prior is not None else np.zeros((3, k_fit))
     if reference is not None:
         reference = sh.truncate(np.asarray(reference, dtype=np.float64), b_fit)
@@ -596,6 +637,7 @@ def solve(radiance, transfer, normals, visible, cfg: SolverConfig, prior=None, m
                         SolveDiagnostics(n_samples=0, weak=True, notes=notes, bands=b_out), None, np.ones((1, 3)))
     # np.take: several times faster than fancy indexing of rows
     A, I, nrm = (np.take(x, idx, axis=0) for x in (transfer, radiance, normals))
+    clip = np.zeros(n, dtype=bool) if clipped is None else np.asarray(clipped, dtype=bool)[idx]
     terms = list(terms or [])
     p = len(terms)
     tsh = None
@@ -618,10 +660,10 @@ def solve(radiance, transfer, normals, visible, cfg: SolverConfig, prior=None, m
     min_count = max(int(cfg.min_region_fraction * n), 3)
     key = _setup_key(cfg, min_count)
     setup = start.setup if start is not None else None
-    if setup is None or setup.key != key or not np.array_equal(setup.samples, idx):
-        first = (alb.cluster(alb.colour_features(I, with_intensity=False), cfg.chroma_bandwidth, min_count)
-                 if cfg.albedo == "regions" else None)
-        setup = _Setup(key, idx, normal_weights(nrm, cfg, first), first)
+    if (setup is None or setup.key != key or not np.array_equal(setup.samples, idx)
+            or not np.array_equal(setup.clipped, clip)):
+        first = _first_regions(I, clip, pts, cfg, min_count) if cfg.albedo == "regions" else None
+        setup = _Setup(key, idx, normal_weights(nrm, cfg, first), first, clip)
     w0 = setup.w0
     held = np.zeros(n, dtype=bool)
     if cfg.holdout_fraction > 0 and n >= 20:
@@ -637,7 +679,9 @@ def solve(radiance, transfer, normals, visible, cfg: SolverConfig, prior=None, m
     rho = np.ones((m, 3))
     rw = np.ones(n)
     F = np.hstack([prior_fit, np.zeros((3, p))])
-    iterations = cfg.iterations if (cfg.loss != "none" or cfg.albedo == "regions") else 1
+    censored = bool(clip.any())
+    I_shown = I
+    iterations = cfg.iterations if (cfg.loss != "none" or cfg.albedo == "regions" or censored) else 1
     c = cfg.loss_scale or TUNING.get(cfg.loss, 1.0)
     F_last, regions = F, _Regions.of(A, I, labels, m, w0)
     for it in range(iterations):
@@ -655,16 +699,19 @@ def solve(radiance, transfer, normals, visible, cfg: SolverConfig, prior=None, m
             if it == SECOND_PASS and iterations > SECOND_PASS + 1:
                 S = np.maximum((A @ F.T) @ sh.LUMINANCE, 1e-12)
                 ratio = np.maximum(I @ sh.LUMINANCE, 1e-12) / S
-                labels = alb.split_by_intensity(labels, np.log(ratio), cfg.intensity_bandwidth, min_count)
+                labels = alb.split_by_intensity(np.where(clip, -1, labels), np.log(ratio), cfg.intensity_bandwidth,
+                                                min_count)
                 if pts is not None and normals is not None:
                     labels = _split_mixed(labels, A, I, F, w0 * rw, pts, nrm, min_count)
                     labels = alb.split_off_plane(labels, pts, nrm, min_count)
                     if lit is not None:
                         labels = alb.join_shadows(labels, lit, pts, nrm)
+                labels = _with_clipped(labels, clip, pts)
                 m = int(labels.max()) + 1
                 w, regions = w0 * rw * (labels >= 0), _Regions.of(A, I, labels, m, w0)
                 Gm, hm, c0 = regions.grams(w)
-            rho, scale = _albedo_step(Gm, hm, F, _counts(labels, w, m), cfg, ref_F, G, tsh)
+            rho, scale = _albedo_step(*_albedo_sums(regions, Gm, hm, w, clip), F, _counts(labels, w * ~clip, m),
+                                      cfg, ref_F, G, tsh)
             F = F * scale[:, None]
             if m > 1:
                 merged, m_merged = alb.merge_similar(labels, rho, MERGE_LOG_TOLERANCE)
@@ -672,12 +719,17 @@ def solve(radiance, transfer, normals, visible, cfg: SolverConfig, prior=None, m
                     labels, m = merged, m_merged
                     w, regions = w0 * rw * (labels >= 0), _Regions.of(A, I, labels, m, w0)
                     Gm, hm, c0 = regions.grams(w)
-                    rho, scale = _albedo_step(Gm, hm, F, _counts(labels, w, m), cfg, ref_F, G, tsh)
+                    rho, scale = _albedo_step(*_albedo_sums(regions, Gm, hm, w, clip), F,
+                                              _counts(labels, w * ~clip, m), cfg, ref_F, G, tsh)
                     F = F * scale[:, None]
-        if cfg.loss != "none":
+        if cfg.loss != "none" or censored:
             pred = np.take(rho, np.maximum(labels, 0), axis=0) * (A @ np.ascontiguousarray(F.T))
+            if censored:   # a clipped sample says only that the radiance is at least what it shows: where the fit
+                # predicts more, the prediction is its value (no residual); where less, the clipped value pulls up
+                I = np.where(clip[:, None], np.maximum(I_shown, pred), I_shown)
+                regions = _Regions.of(A, I, labels, m, w0)
             r = (I - pred) @ sh.LUMINANCE
-            active = w0 * (labels >= 0)
+            active = w0 * (labels >= 0) * ~clip
             rw = loss_weights(r / robust_scale(r, active), cfg.loss, c)
         moved = np.linalg.norm(F - F_last) / max(float(np.linalg.norm(F)), 1e-300)
         F_last = F
@@ -732,7 +784,7 @@ def solve(radiance, transfer, normals, visible, cfg: SolverConfig, prior=None, m
         sigma2 = float(max(sum(F[c] @ G[c] @ F[c] - 2 * g[c] @ F[c] + c0[c] for c in range(3)), 0.0)
                        / max(3 * n_fit - 3 * k, 1))
     heldout = None
-    use_held = held & (labels >= 0)
+    use_held = held & (labels >= 0) & ~clip
     if use_held.any():
         r = np.abs((I[use_held] - pred[use_held]) @ sh.LUMINANCE)
         heldout = float(np.median(r / np.maximum(np.abs(I[use_held] @ sh.LUMINANCE), 1e-12)))
@@ -742,6 +794,13 @@ def solve(radiance, transfer, normals, visible, cfg: SolverConfig, prior=None, m
     unassigned = int((labels < 0).sum())
     if unassigned:
         notes.append(f"{unassigned} samples in no albedo region")
+    unclipped = int(((w > 0) & ~clip).sum())
+    if censored:
+        binding = int((clip & (w > 0) & (pred < I_shown).any(axis=1)).sum())
+        notes.append(f"{int(clip.sum())} saturated samples as lower bounds, {binding} of them binding")
+        if unclipped < cfg.min_samples_factor * k:
+            too_few = True
+            notes.append(f"only {unclipped} unsaturated samples for {k} unknowns")
     inliers = float((w0 * rw).sum() / max(w0.sum(), 1e-300))
     diag = SolveDiagnostics(
         n_samples=n_fit, condition_number=cond, effective_rank=rank,

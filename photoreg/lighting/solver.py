@@ -238,8 +238,9 @@ def _all_columns(b: np.ndarray) -> np.ndarray:
     return ok
 
 
-def _usable(radiance, transfer, normals, visible, mask, cfg) -> tuple[np.ndarray, list[str]]:
-    """Boolean mask of samples fit to enter the solve, with notes on what was dropped and why."""
+def _usable(radiance, transfer, normals, visible, mask, cfg, clipped=None) -> tuple[np.ndarray, list[str]]:
+    """Boolean mask of samples fit to enter the solve, with notes on what was dropped and why; `clipped` samples
+    (censored: robust.solve) are not dropped as saturated."""
     notes: list[str] = []
     keep = np.ones(radiance.shape[0], dtype=bool) if mask is None else np.asarray(mask, dtype=bool).copy()
     finite_rad, finite_nrm = np.isfinite(radiance), np.isfinite(normals)
@@ -253,7 +254,8 @@ def _usable(radiance, transfer, normals, visible, mask, cfg) -> tuple[np.ndarray
              ("occluded (visible < min_visible)", np.where(np.isfinite(visible), visible, -1.0) >= cfg.min_visible),
              ("black", peak > cfg.black_level)]
     if cfg.saturation_level is not None:
-        tests.append(("saturated", peak < cfg.saturation_level))
+        bright = peak < cfg.saturation_level
+        tests.append(("saturated", bright if clipped is None else bright | clipped))
     for name, ok in tests:
         dropped = int((keep & ~ok).sum())
         if dropped:
@@ -262,9 +264,11 @@ def _usable(radiance, transfer, normals, visible, mask, cfg) -> tuple[np.ndarray
     return keep, notes
 
 
-def select_samples(radiance, transfer, normals, visible, cfg: SolverConfig, bands: int, prior=None, mask=None):
+def select_samples(radiance, transfer, normals, visible, cfg: SolverConfig, bands: int, prior=None, mask=None,
+                   clipped=None):
     """Checked float64 inputs, transfer cut to `bands`, the indices of the usable (subsampled) samples,
-    the prior cut to `bands` (None when absent or unusable) and notes on what was dropped.
+    the prior cut to `bands` (None when absent or unusable) and notes on what was dropped; `clipped` (N,) bool
+    marks censored samples (robust.solve), kept whatever their level.
 
     Shapes that do not match raise ValueError; bad data only drops samples."""
     radiance = np.asarray(radiance, dtype=np.float64).reshape(-1, 3)
@@ -280,6 +284,10 @@ def select_samples(radiance, transfer, normals, visible, cfg: SolverConfig, band
                          f"normals {normals.shape[0]}, visible {visible.shape[0]}")
     if mask is not None and np.shape(mask) != (n_all,):
         raise ValueError(f"mask shape {np.shape(mask)} does not match {n_all} samples")
+    if clipped is not None:
+        if np.shape(clipped) != (n_all,):
+            raise ValueError(f"clipped shape {np.shape(clipped)} does not match {n_all} samples")
+        clipped = np.asarray(clipped, dtype=bool)
     transfer = transfer[:, :k]
     notes: list[str] = []
     if prior is not None:
@@ -287,7 +295,7 @@ def select_samples(radiance, transfer, normals, visible, cfg: SolverConfig, band
         if prior.shape[0] != 3 or not np.isfinite(prior).all():
             notes.append("prior ignored (not a finite 3-channel SH)")
             prior = None
-    keep, drop_notes = _usable(radiance, transfer, normals, visible, mask, cfg)
+    keep, drop_notes = _usable(radiance, transfer, normals, visible, mask, cfg, clipped)
     notes += drop_notes
     idx = np.flatnonzero(keep)
     if cfg.max_samples is not None and idx.size > cfg.max_samples:

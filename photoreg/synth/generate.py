@@ -50,6 +50,7 @@ class SynthConfig:
     insert_frames: str = "auto"  # "auto", "none" or comma-separated frame indices
     noise: bool = True  # Kinect-like depth in depth/ and the clean depth in depth_clean/
     mesh: str | None = None  # mesh file for the tabletop's mesh object (default: a procedural cylinder)
+    overexpose: float = 1.0  # times the chosen exposure (> 1: the brightest surfaces saturate, as a camera's do)
     sky: ProceduralSky = field(default_factory=ProceduralSky)
 
     def command_line(self) -> str:
@@ -60,6 +61,7 @@ class SynthConfig:
                 "--insert-frames", self.insert_frames]
         args += ["--direct-only"] * self.direct_only + ["--no-noise"] * (not self.noise)
         args += ["--mesh", self.mesh] if self.mesh else []
+        args += ["--overexpose", f"{self.overexpose:g}"] if self.overexpose != 1.0 else []
         return shlex.join(args)
 
     @property
@@ -79,6 +81,8 @@ class SynthConfig:
             raise ValueError(f"--spp {self.spp}: need at least 1")
         if self.width < 8 or self.height < 8:
             raise ValueError(f"--size {self.width}x{self.height}: need at least 8x8 pixels")
+        if not (self.overexpose > 0 and np.isfinite(self.overexpose)):
+            raise ValueError(f"--overexpose {self.overexpose}: need a positive factor")
         if self.mesh and self.scene != "tabletop":
             raise ValueError(f"--mesh is used by the tabletop scene only (scene is {self.scene!r})")
         if self.env != "procedural" and not Path(self.env).is_file():
@@ -187,7 +191,7 @@ def generate(cfg: SynthConfig, log: Callable[[str], None] | None = print) -> Pat
         seed = _frame_seed(cfg, i)
         radiance = base.render(pose, cfg.spp, seed)
         if exposure is None:
-            exposure = choose_exposure(radiance)
+            exposure = cfg.overexpose * choose_exposure(radiance)
         z = base.geometry(pose)
         noisy = kinect_like(z, np.random.default_rng([cfg.seed, i])) if cfg.noise else None
         writer.write_frame(i, i / FPS, linear_to_srgb(exposure * radiance), z if noisy is None else noisy, pose,
@@ -227,7 +231,8 @@ def generate(cfg: SynthConfig, log: Callable[[str], None] | None = print) -> Pat
         "render": {"integrator": "path", "max_depth": cfg.max_depth, "spp": cfg.spp, "seed": cfg.seed,
                    "reconstruction_filter": "box"},
         "exposure": exposure,
-        "exposure_rule": "99.5th percentile of frame 0's per-pixel max channel -> 0.9; images = exposure * radiance",
+        "exposure_rule": f"99.5th percentile of frame 0's per-pixel max channel -> 0.9, times {cfg.overexpose:g}; "
+                         "images = exposure * radiance",
         "depth": {"depth_scale": K.depth_scale, "clean": "depth_clean/" if cfg.noise else "depth/",
                   "noise": ("sigma = 1.2 mm + 1.9 mm * (z - 0.4)^2, holes where a 3x3 neighbourhood spans "
                             "> 4% of z or touches a missing pixel, quantised to 1/depth_scale m") if cfg.noise else None},
@@ -246,6 +251,7 @@ def synth_command(args) -> int:
     width, height = parse_size(args.size)
     cfg = SynthConfig(scene=args.scene, out=args.out, frames=args.frames, width=width, height=height, spp=args.spp,
                       env=args.env, yaw=args.yaw, seed=args.seed, camera=args.camera, direct_only=args.direct_only,
-                      insert_frames=args.insert_frames, noise=not args.no_noise, mesh=args.mesh)
+                      insert_frames=args.insert_frames, noise=not args.no_noise, mesh=args.mesh,
+                      overexpose=args.overexpose)
     generate(cfg, log=lambda msg: print(msg, flush=True))
     return 0
