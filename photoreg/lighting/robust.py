@@ -609,13 +609,13 @@ def solve(radiance, transfer, normals, visible, cfg: SolverConfig, prior=None, m
     (colour) albedo regions are reused when it fitted the same samples with the same settings (same result,
     less work). `current`: the inputs' first `current` rows are the current view's, the rest earlier views' (the
     pipeline's history): Solution.current_system then holds the normal equations over the current view's rows
-    alone, for the temporal filter's change test. `clipped` (N,) bool: samples whose colour saturated (lighting.censored),
-    censored observations: their radiance is a lower bound, so they are kept whatever cfg.saturation_level says; at
-    every iteration a clipped sample's value is the larger of what it shows and what the fit predicts (no residual
-    where the fit predicts more, a pull up where it predicts less: the censored fit by imputation), and it neither
-    finds nor estimates albedo regions (it takes its nearest neighbour's region). Left out, the sunlit surfaces a
-    camera saturates went missing from the fit and took the sun's share with them (benchmarks/lighting_accuracy.md,
-    "Saturated pixels as lower bounds")."""
+    alone, for the temporal filter's change test. `clipped` (N,) bool: samples whose colour saturated
+    (lighting.censored), censored observations: their radiance is a lower bound, so they are kept whatever
+    cfg.saturation_level says; at every iteration a clipped sample's value is the larger of what it shows and what
+    the fit predicts (no residual where the fit predicts more, a pull up where it predicts less: the censored fit by
+    imputation), and it neither finds nor estimates albedo regions (it takes its nearest neighbour's region). Left
+    out, the sunlit surfaces a camera saturates went missing from the fit and took the sun's share with them
+    (benchmarks/lighting_accuracy.md, "Saturated pixels as lower bounds")."""
     b_fit = cfg.fit_bands
     k_fit = b_fit * b_fit
     radiance, transfer, normals, idx, prior, notes = select_samples(radiance, transfer, normals, visible, cfg,
