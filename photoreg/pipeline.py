@@ -155,9 +155,9 @@ class Pipeline:
                 or checked[2] != self.sample_kernel):
             checked = (prep, maps, self.sample_kernel,
                        strided_box(prep, st, lc.sample_box, lc.censored) if not self.sample_kernel else
-                       sample_maps(prep.linear, prep.usable.view(np.uint8) + 2 * prep.clipped.view(np.uint8)
-                                   if lc.censored else prep.usable, prep.depth, self.intrinsics, pose, maps,
-                                   lc.max_normal_angle, gap, self.device, lc.sample_box))
+                       sample_maps(prep.linear, prep.usable, prep.depth, self.intrinsics, pose, maps,
+                                   lc.max_normal_angle, gap, self.device, lc.sample_box,
+                                   prep.clipped if lc.censored else None))
             self._checked = checked   # one tuple, replaced whole: the worker and the frames read it without a lock
         if not self.sample_kernel:
             radiance, usable, clipped = checked[3]

@@ -33,18 +33,18 @@ def strided_box(prep: Prepared, stride: int, box: int = 0,
     else (their mean is a lower bound of the radiance); else it is all False."""
     box = box or (stride | 1)
     fit = (prep.usable | prep.clipped) if censored else prep.usable
-    clipped = prep.clipped if censored else np.zeros_like(prep.clipped)
-    if box == 1:
-        if stride == 1:
-            return prep.linear, fit, clipped
-        return prep.linear[::stride, ::stride], fit[::stride, ::stride], clipped[::stride, ::stride]
-    k = (box, box)
-    radiance = cv2.boxFilter(prep.linear, -1, k, borderType=cv2.BORDER_REFLECT)[::stride, ::stride]
-    # the whole box usable (or clipped): an erosion (0.2 ms at 640x480 against 0.5 for a box filter of the mask)
-    usable = cv2.erode(fit.view(np.uint8), np.ones(k, np.uint8), borderType=cv2.BORDER_REFLECT)
-    if censored:
-        clipped = cv2.erode(clipped.view(np.uint8), np.ones(k, np.uint8), borderType=cv2.BORDER_REFLECT) > 0
-    return radiance, usable[::stride, ::stride] > 0, clipped[::stride, ::stride]
+
+    def whole(mask: np.ndarray) -> np.ndarray:
+        """Whether the whole box round each strided pixel is in `mask`: an erosion (0.2 ms at 640x480 against 0.5
+        for a box filter of the mask); with a box of 1 the pixel itself."""
+        if box > 1:
+            mask = cv2.erode(mask.view(np.uint8), np.ones((box, box), np.uint8), borderType=cv2.BORDER_REFLECT) > 0
+        return mask if stride == 1 else mask[::stride, ::stride]
+
+    radiance = prep.linear if box == 1 else cv2.boxFilter(prep.linear, -1, (box, box), borderType=cv2.BORDER_REFLECT)
+    radiance = radiance if stride == 1 else radiance[::stride, ::stride]
+    usable = whole(fit)
+    return radiance, usable, whole(prep.clipped) if censored else np.zeros(usable.shape, bool)
 
 
 def _denoise_luminance(linear: np.ndarray, method: str) -> np.ndarray:

@@ -502,9 +502,8 @@ def test_sample_kernel_draws_the_host_paths_samples():
                               (2, 5, True), (4, 0, False)):
         lc.sample_box, lc.censored = box, censored
         maps = raycast_surface(pipe.volume.dense_grid(), rec.intrinsics, pose, rc.depth_min, rc.depth_max, stride=st)
-        codes = prep.usable.view(np.uint8) + 2 * prep.clipped.view(np.uint8) if censored else prep.usable
-        found = sample_maps(prep.linear, codes, prep.depth, rec.intrinsics, pose, maps, lc.max_normal_angle,
-                            gap, "cpu", box)
+        found = sample_maps(prep.linear, prep.usable, prep.depth, rec.intrinsics, pose, maps, lc.max_normal_angle,
+                            gap, "cpu", box, prep.clipped if censored else None)
         radiance, usable, clipped = strided_box(prep, st, box, censored)
         np.testing.assert_array_equal((found.flags & CANDIDATE) > 0, usable & maps.valid)
         np.testing.assert_array_equal((found.flags & CLIPPED) > 0, clipped & usable & maps.valid)

@@ -119,12 +119,16 @@ def _sample_maps(linear: wp.array2d(dtype=wp.vec3), usable: wp.array2d(dtype=wp.
 
 
 def sample_maps(linear: np.ndarray, usable: np.ndarray, depth: np.ndarray, intr: Intrinsics, pose: np.ndarray,
-                maps, max_angle_deg: float, max_gap: float, device: str, box: int = 0) -> SampleMaps:
+                maps, max_angle_deg: float, max_gap: float, device: str, box: int = 0,
+                clipped: np.ndarray | None = None) -> SampleMaps:
     """Box radiance and CANDIDATE / AGREES / CLIPPED flags (module docstring) at the pixels of the ray-cast `maps`
     (photoreg.kernels.raycast.SurfaceMaps, on `device`) of a frame: `linear` (H, W, 3) float32, `usable`
-    (H, W) uint8 (0 unusable, 1 usable, 2 clipped) or bool, `depth` (H, W) float32 metres (0 invalid),
-    camera-to-world `pose`; an odd `box` of pixels (0: stride | 1). The depth map's normal spans max(2, stride)
-    pixels."""
+    (H, W) bool, `depth` (H, W) float32 metres (0 invalid), camera-to-world `pose`; an odd `box` of pixels
+    (0: stride | 1); `clipped` (H, W) bool (lighting.censored; None: none) the pixels a box may also hold. The depth
+    map's normal spans max(2, stride) pixels."""
+    codes = np.ascontiguousarray(usable).view(np.uint8)   # 0 unusable, 1 usable, 2 clipped
+    if clipped is not None:
+        codes = codes + 2 * np.ascontiguousarray(clipped).view(np.uint8)
     st = maps.stride
     h, w = maps.depth.shape
     box = box or (st | 1)
@@ -136,7 +140,7 @@ def sample_maps(linear: np.ndarray, usable: np.ndarray, depth: np.ndarray, intr:
     flags = wp.empty((h, w), dtype=wp.uint8, device=device)
     launch_rows(_sample_maps, (h, w), device=device,
                 inputs=[wp.array(np.ascontiguousarray(linear, dtype=np.float32), dtype=wp.vec3, **as_wp),
-                        wp.array(np.ascontiguousarray(usable).view(np.uint8), dtype=wp.uint8, **as_wp),
+                        wp.array(codes, dtype=wp.uint8, **as_wp),
                         wp.array(np.ascontiguousarray(depth, dtype=np.float32), dtype=wp.float32, **as_wp),
                         maps.depth_wp, maps.normal_wp, wp.mat33d(*rot.T.ravel()), float(intr.fx), float(intr.fy),
                         float(intr.cx), float(intr.cy), st, box // 2, max(2, st),

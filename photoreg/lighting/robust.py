@@ -571,8 +571,6 @@ def _first_regions(I: np.ndarray, clipped: np.ndarray, points: np.ndarray | None
                    min_count: int) -> np.ndarray:
     """First-pass (colour) albedo regions of the unclipped samples; the clipped ones join their neighbours'
     (_with_clipped)."""
-    if not clipped.any():
-        return alb.cluster(alb.colour_features(I, with_intensity=False), cfg.chroma_bandwidth, min_count)
     labels = -np.ones(len(I), dtype=np.int64)
     labels[~clipped] = alb.cluster(alb.colour_features(I[~clipped], with_intensity=False), cfg.chroma_bandwidth,
                                    min_count)
