@@ -4,6 +4,9 @@ warm-up frames; prints and writes the functions with the most time per frame, cu
 
     python3 benchmarks/render_profile.py sessions/tum_fr1_rpy.toml --device cuda --frames 0:25 --json OUT.json
 
+`--whole` profiles whole frames instead (every stage; a session without objects too), `--every N` holds each
+estimate for N frames (lighting.every: `--every 1000` profiles frames that only take their exposure gain).
+
 On CUDA a kernel's time lands where the host waits for it (a synchronisation, a copy to the host).
 """
 from __future__ import annotations
@@ -25,6 +28,8 @@ def main() -> None:
     ap.add_argument("--stride", type=int, default=4)
     ap.add_argument("--rays", type=int, default=64)
     ap.add_argument("--bands", type=int, default=3)
+    ap.add_argument("--every", type=int, default=1)
+    ap.add_argument("--whole", action="store_true", help="profile whole frames, not the render stage alone")
     ap.add_argument("--top", type=int, default=30)
     ap.add_argument("--json")
     a = ap.parse_args()
@@ -35,7 +40,8 @@ def main() -> None:
 
     s = load_session(a.session)
     s.device, s.lighting.stride, s.lighting.rays, s.lighting.bands = a.device, a.stride, a.rays, a.bands
-    if not s.objects:
+    s.lighting.every = a.every
+    if not s.objects and not a.whole:
         sys.exit(f"{a.session}: no [[objects]], no render stage to profile")
     rec = open_recording(s.recording.path, fmt=s.recording.format)
     indices = parse_frames(a.frames, len(rec))
@@ -56,7 +62,12 @@ def main() -> None:
 
     profiled = Profiled()
     for k, frame in enumerate(iter_frames(rec, indices)):
-        pipe.render = profiled if k >= a.warmup else stage
+        if a.whole and k >= a.warmup:
+            t0 = time.perf_counter()
+            prof.runcall(pipe.process, frame)
+            walls.append((time.perf_counter() - t0) * 1000.0)
+            continue
+        pipe.render = profiled if k >= a.warmup and stage is not None else stage
         pipe.process(frame)
     pipe.close()
     n = len(walls)
@@ -65,11 +76,13 @@ def main() -> None:
     for (path, line, name), (_, calls, own, cum, _) in stats.stats.items():
         rows.append({"function": f"{path.split('site-packages/')[-1]}:{line}({name})", "calls_per_frame":
                      round(calls / n, 2), "own_ms": round(own * 1000 / n, 3), "cumulative_ms": round(cum * 1000 / n, 3)})
+    part = "frame" if a.whole else "render"
     out = {"session": a.session, "device": pipe.device, "frames_profiled": n, "stride": a.stride, "rays": a.rays,
-           "bands": a.bands, "render_ms_mean": round(sum(walls) / n, 3),
+           "bands": a.bands, "every": a.every, "objects": len(s.objects), f"{part}_ms_mean": round(sum(walls) / n, 3),
            "by_cumulative": sorted(rows, key=lambda r: -r["cumulative_ms"])[:a.top],
            "by_own": sorted(rows, key=lambda r: -r["own_ms"])[:a.top]}
-    print(f"render stage on {pipe.device}: {out['render_ms_mean']} ms a frame (profiled, {n} frames)")
+    print(f"{'whole frame' if a.whole else 'render stage'} on {pipe.device}: {out[part + '_ms_mean']} ms a frame "
+          f"(profiled, {n} frames)")
     for key in ("by_cumulative", "by_own"):
         print(f"-- {key} (ms a frame)")
         for r in out[key]:

@@ -101,8 +101,9 @@ class Pipeline:
         self._in_flight: tuple[int, int, futures.Future] | None = None
         self._frames = 0
         # the samples' box radiance and depth checks by one kernel over the maps on a GPU; on the CPU by OpenCV's box
-        # filter and numpy over the candidates drawn, faster there (the same samples either way: kernels.samples)
-        self.sample_kernel = self.device != "cpu"
+        # filter and numpy over the candidates drawn, faster there (the same samples either way: kernels.samples);
+        # the kernel linearises the 8-bit colour itself, so a denoised one (lighting.denoise) takes the host's path
+        self.sample_kernel = self.device != "cpu" and lc.denoise == "none"
         # the last frame's per-pixel sample checks (prep, maps, sample_kernel, result): a frame that hands its estimate to the worker
         # (lighting.asynchronous) takes its gain's samples from the same maps first, and the worker reuses them
         self._checked: tuple | None = None
@@ -155,7 +156,7 @@ class Pipeline:
                 or checked[2] != self.sample_kernel):
             checked = (prep, maps, self.sample_kernel,
                        strided_box(prep, st, lc.sample_box, lc.censored) if not self.sample_kernel else
-                       sample_maps(prep.linear, prep.usable, prep.depth, self.intrinsics, pose, maps,
+                       sample_maps(prep.colour, prep.usable, prep.depth, self.intrinsics, pose, maps,
                                    lc.max_normal_angle, gap, self.device, lc.sample_box,
                                    prep.clipped if lc.censored else None))
             self._checked = checked   # one tuple, replaced whole: the worker and the frames read it without a lock

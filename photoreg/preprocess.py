@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import cv2
 import numpy as np
@@ -15,13 +16,20 @@ from .types import Frame
 class Prepared:
     """A frame ready for fusion and sampling."""
 
-    linear: np.ndarray      # HxWx3 float32 linear radiance (camera units)
+    colour: np.ndarray      # HxWx3 uint8 sRGB as recorded
     depth: np.ndarray       # HxW float32 metres, 0 where invalid or out of range
     usable: np.ndarray      # HxW bool: colour neither saturated nor black, depth valid
     clipped: np.ndarray     # HxW bool: colour saturated (not black), depth valid: the radiance at least what it shows
     saturated_fraction: float
     black_fraction: float
     valid_depth_fraction: float
+    denoise: str = "none"   # lighting.denoise: how `linear` is made from `colour`
+
+    @cached_property
+    def linear(self) -> np.ndarray:
+        """HxWx3 float32 linear radiance (camera units), made when first read: a GPU's samples linearise the 8-bit
+        colour on the device (kernels.samples), so without an object inserted no frame makes it on the host."""
+        return _denoise_luminance(srgb_to_linear(self.colour), self.denoise)
 
 
 def strided_box(prep: Prepared, stride: int, box: int = 0,
@@ -82,8 +90,8 @@ def masked_depth(depth: np.ndarray, lo: float,
 
 
 def prepare(frame: Frame, light: LightingConfig, recon: ReconstructionConfig) -> Prepared:
-    """Linearise colour, mask saturated/black pixels and invalid depth (NaN, inf, out of range); optionally
-    filter the depth (reconstruction.depth_filter_px)."""
+    """Mask saturated/black pixels and invalid depth (NaN, inf, out of range); optionally filter the depth
+    (reconstruction.depth_filter_px). The linear colour is made when first read (Prepared.linear)."""
     if frame.color.shape[:2] != frame.depth.shape[:2]:
         raise ValueError(f"frame {frame.index} ({frame.source}): colour {frame.color.shape[:2]} and depth "
                          f"{frame.depth.shape[:2]} sizes differ")
@@ -100,11 +108,10 @@ def prepare(frame: Frame, light: LightingConfig, recon: ReconstructionConfig) ->
     d, valid = masked_depth(frame.depth, recon.depth_min, recon.depth_max)
     if recon.depth_filter_px:
         d = filter_depth(d, valid, recon.depth_filter_px, recon.depth_filter_m)
-    linear = _denoise_luminance(srgb_to_linear(frame.color), light.denoise)
     n = float(d.size)
 
     def share(mask: np.ndarray) -> float:
         return cv2.countNonZero(mask.view(np.uint8)) / n   # 15x faster than mask.sum()
 
-    return Prepared(linear, d, valid & ~saturated & ~black, valid & saturated & ~black, share(saturated),
-                    share(black), share(valid))
+    return Prepared(frame.color, d, valid & ~saturated & ~black, valid & saturated & ~black, share(saturated),
+                    share(black), share(valid), light.denoise)

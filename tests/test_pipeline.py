@@ -502,7 +502,7 @@ def test_sample_kernel_draws_the_host_paths_samples():
                               (2, 5, True), (4, 0, False)):
         lc.sample_box, lc.censored = box, censored
         maps = raycast_surface(pipe.volume.dense_grid(), rec.intrinsics, pose, rc.depth_min, rc.depth_max, stride=st)
-        found = sample_maps(prep.linear, prep.usable, prep.depth, rec.intrinsics, pose, maps, lc.max_normal_angle,
+        found = sample_maps(prep.colour, prep.usable, prep.depth, rec.intrinsics, pose, maps, lc.max_normal_angle,
                             gap, "cpu", box, prep.clipped if censored else None)
         radiance, usable, clipped = strided_box(prep, st, box, censored)
         np.testing.assert_array_equal((found.flags & CANDIDATE) > 0, usable & maps.valid)
@@ -526,6 +526,31 @@ def test_sample_kernel_draws_the_host_paths_samples():
                 np.testing.assert_array_equal(a, b)
             checked += len(host[0])
     assert checked > 7000
+
+
+def test_kernel_samples_read_the_8bit_colour():
+    """On the samples' kernel path (a GPU's; here Warp's CPU) a frame with no object inserted never makes its float
+    linear colour on the host (Prepared.linear, made when first read): the kernel linearises the 8-bit colour, a
+    quarter of the bytes to upload, and draws the same samples as the host's path from the float colour."""
+    from photoreg.kernels.raycast import raycast_surface
+
+    s = load_session(REPO / "data" / "demo" / "session.toml")
+    s.device, s.lighting.rays, s.objects = "cpu", 16, []
+    rec = open_recording(s.recording.path)
+    pipe = pipeline_module.Pipeline(s, rec.intrinsics)
+    pipe.sample_kernel = True
+    for frame in iter_frames(rec, range(3)):
+        prep, pose, notes = pipe.observe(frame, {})
+        result = pipe.estimate(frame, prep, pose, notes, {})
+    assert np.isfinite(result.lighting.sh).all() and result.diagnostics.exposure_gain > 0
+    assert "linear" not in vars(prep)   # the cached_property was never read
+    rc = pipe.session.reconstruction
+    maps = raycast_surface(pipe.volume.dense_grid(), rec.intrinsics, pose, rc.depth_min, rc.depth_max, stride=4)
+    kernel = pipe._samples(prep, maps, pose)
+    pipe.sample_kernel, pipe._checked = False, None
+    host = pipe._samples(prep, maps, pose)
+    np.testing.assert_allclose(kernel[0], host[0], rtol=1e-5, atol=1e-7)
+    np.testing.assert_array_equal(kernel[1], host[1])
 
 
 def test_samples_of_one_frame_check_its_pixels_once(monkeypatch):

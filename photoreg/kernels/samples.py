@@ -3,8 +3,9 @@
 The GPU's path to what the host computes with preprocess.strided_box and lighting.samples.agreement (why the
 checks exist: that module's docstring), with the same flags and radiance to float rounding
 (tests/test_pipeline.py). For the map pixel (r, c), at image pixel (r * stride, c * stride):
-- radiance: the linear colour averaged over an odd box (lighting.sample_box; stride | 1 by default) centred there,
-  mirrored at the image border (OpenCV's BORDER_REFLECT); a box of 1 is the pixel's own;
+- radiance: the linear colour (the 8-bit sRGB frame through io.images' table, on the device: a quarter of the
+  float colour's bytes to upload) averaged over an odd box (lighting.sample_box; stride | 1 by default) centred
+  there, mirrored at the image border (OpenCV's BORDER_REFLECT); a box of 1 is the pixel's own;
 - CANDIDATE: the whole box is usable (colour neither saturated nor black, depth valid; or clipped, where the
   usable map says so: lighting.censored) and the ray cast found a surface there;
 - CLIPPED: a candidate whose box holds clipped pixels alone (its radiance is a lower bound);
@@ -24,6 +25,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from photoreg.device import init_warp
+from photoreg.io.images import SRGB_TO_LINEAR
 from photoreg.kernels.launch import launch_rows
 from photoreg.types import Intrinsics
 
@@ -66,7 +68,8 @@ def _back_project(depth: wp.array2d(dtype=wp.float32), r: int, c: int, fx: wp.fl
 
 
 @wp.kernel
-def _sample_maps(linear: wp.array2d(dtype=wp.vec3), usable: wp.array2d(dtype=wp.uint8),
+def _sample_maps(srgb: wp.array2d(dtype=wp.vec3ub), table: wp.array(dtype=wp.float32),
+                 usable: wp.array2d(dtype=wp.uint8),
                  depth: wp.array2d(dtype=wp.float32), surface_depth: wp.array2d(dtype=wp.float32),
                  surface_normal: wp.array2d(dtype=wp.vec3), world_to_cam: wp.mat33d, fx: wp.float64,
                  fy: wp.float64, cx: wp.float64, cy: wp.float64, stride: int, half: int, step: int,
@@ -80,7 +83,7 @@ def _sample_maps(linear: wp.array2d(dtype=wp.vec3), usable: wp.array2d(dtype=wp.
         radiance[r, tc] = wp.vec3(0.0, 0.0, 0.0)
         flags[r, tc] = wp.uint8(0)
         return
-    h, w = linear.shape[0], linear.shape[1]
+    h, w = srgb.shape[0], srgb.shape[1]
     total = wp.vec3(0.0, 0.0, 0.0)
     whole = int(1)
     clipped = CLIPPED
@@ -88,7 +91,8 @@ def _sample_maps(linear: wp.array2d(dtype=wp.vec3), usable: wp.array2d(dtype=wp.
         yy = _mirror(y + dy, h)
         for dx in range(-half, half + 1):
             xx = _mirror(x + dx, w)
-            total = total + linear[yy, xx]
+            p = srgb[yy, xx]
+            total = total + wp.vec3(table[int(p[0])], table[int(p[1])], table[int(p[2])])
             u = usable[yy, xx]
             if u == wp.uint8(0):
                 whole = 0
@@ -118,14 +122,26 @@ def _sample_maps(linear: wp.array2d(dtype=wp.vec3), usable: wp.array2d(dtype=wp.
     flags[r, tc] = wp.uint8(out)
 
 
-def sample_maps(linear: np.ndarray, usable: np.ndarray, depth: np.ndarray, intr: Intrinsics, pose: np.ndarray,
+_TABLES: dict = {}
+
+
+def _table(device: str):
+    """io.images.SRGB_TO_LINEAR on `device` (uploaded once)."""
+    key = str(wp.get_device(device))
+    if key not in _TABLES:
+        _TABLES[key] = wp.array(SRGB_TO_LINEAR, dtype=wp.float32, device=device)
+    return _TABLES[key]
+
+
+def sample_maps(colour: np.ndarray, usable: np.ndarray, depth: np.ndarray, intr: Intrinsics, pose: np.ndarray,
                 maps, max_angle_deg: float, max_gap: float, device: str, box: int = 0,
                 clipped: np.ndarray | None = None) -> SampleMaps:
     """Box radiance and CANDIDATE / AGREES / CLIPPED flags (module docstring) at the pixels of the ray-cast `maps`
-    (photoreg.kernels.raycast.SurfaceMaps, on `device`) of a frame: `linear` (H, W, 3) float32, `usable`
-    (H, W) bool, `depth` (H, W) float32 metres (0 invalid), camera-to-world `pose`; an odd `box` of pixels
-    (0: stride | 1); `clipped` (H, W) bool (lighting.censored; None: none) the pixels a box may also hold. The depth
-    map's normal spans max(2, stride) pixels."""
+    (photoreg.kernels.raycast.SurfaceMaps, on `device`) of a frame: `colour` (H, W, 3) uint8 sRGB (the radiance is
+    io.images.srgb_to_linear's, no lighting.denoise), `usable` (H, W) bool, `depth` (H, W) float32 metres (0
+    invalid), camera-to-world `pose`; an odd `box` of pixels (0: stride | 1); `clipped` (H, W) bool
+    (lighting.censored; None: none) the pixels a box may also hold. The depth map's normal spans max(2, stride)
+    pixels."""
     codes = np.ascontiguousarray(usable).view(np.uint8)   # 0 unusable, 1 usable, 2 clipped
     if clipped is not None:
         codes = codes + 2 * np.ascontiguousarray(clipped).view(np.uint8)
@@ -139,8 +155,8 @@ def sample_maps(linear: np.ndarray, usable: np.ndarray, depth: np.ndarray, intr:
     radiance = wp.empty((h, w), dtype=wp.vec3, device=device)
     flags = wp.empty((h, w), dtype=wp.uint8, device=device)
     launch_rows(_sample_maps, (h, w), device=device,
-                inputs=[wp.array(np.ascontiguousarray(linear, dtype=np.float32), dtype=wp.vec3, **as_wp),
-                        wp.array(codes, dtype=wp.uint8, **as_wp),
+                inputs=[wp.array(np.ascontiguousarray(colour, dtype=np.uint8), dtype=wp.vec3ub, **as_wp),
+                        _table(device), wp.array(codes, dtype=wp.uint8, **as_wp),
                         wp.array(np.ascontiguousarray(depth, dtype=np.float32), dtype=wp.float32, **as_wp),
                         maps.depth_wp, maps.normal_wp, wp.mat33d(*rot.T.ravel()), float(intr.fx), float(intr.fy),
                         float(intr.cx), float(intr.cy), st, box // 2, max(2, st),
