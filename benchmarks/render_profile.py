@@ -4,8 +4,10 @@ warm-up frames; prints and writes the functions with the most time per frame, cu
 
     python3 benchmarks/render_profile.py sessions/tum_fr1_rpy.toml --device cuda --frames 0:25 --json OUT.json
 
-`--whole` profiles whole frames instead (every stage; a session without objects too), `--every N` holds each
-estimate for N frames (lighting.every: `--every 1000` profiles frames that only take their exposure gain).
+`--part frame` profiles whole frames instead (every stage; a session without objects too), `--part worker` the
+estimates of the lighting's worker thread (with `--async`: lighting.asynchronous; what it does while holding the
+interpreter lock slows the frames beside it); `--every N` holds each estimate for N frames (lighting.every: `--every
+1000` profiles frames that only take their exposure gain).
 
 On CUDA a kernel's time lands where the host waits for it (a synchronisation, a copy to the host).
 """
@@ -29,7 +31,9 @@ def main() -> None:
     ap.add_argument("--rays", type=int, default=64)
     ap.add_argument("--bands", type=int, default=3)
     ap.add_argument("--every", type=int, default=1)
-    ap.add_argument("--whole", action="store_true", help="profile whole frames, not the render stage alone")
+    ap.add_argument("--async", dest="asynchronous", action="store_true", help="lighting.asynchronous")
+    ap.add_argument("--part", choices=("render", "frame", "worker"), default="render",
+                    help="what to profile: the render stage, whole frames or the worker's estimates (with --async)")
     ap.add_argument("--top", type=int, default=30)
     ap.add_argument("--json")
     a = ap.parse_args()
@@ -40,35 +44,43 @@ def main() -> None:
 
     s = load_session(a.session)
     s.device, s.lighting.stride, s.lighting.rays, s.lighting.bands = a.device, a.stride, a.rays, a.bands
-    s.lighting.every = a.every
-    if not s.objects and not a.whole:
+    s.lighting.every, s.lighting.asynchronous = a.every, a.asynchronous
+    if not s.objects and a.part == "render":
         sys.exit(f"{a.session}: no [[objects]], no render stage to profile")
+    if a.part == "worker" and not a.asynchronous:
+        sys.exit("--part worker needs --async (no worker without it)")
     rec = open_recording(s.recording.path, fmt=s.recording.format)
     indices = parse_frames(a.frames, len(rec))
     pipe = Pipeline(s, rec.intrinsics)
     stage, prof, walls = pipe.render, cProfile.Profile(), []
 
+    def timed(fn, *args, **kwargs):
+        """fn's call profiled (cProfile follows the calling thread alone) and its wall ms kept."""
+        t0 = time.perf_counter()
+        out = prof.runcall(fn, *args, **kwargs)
+        walls.append((time.perf_counter() - t0) * 1000.0)
+        return out
+
     class Profiled:
         """The stage, its calls profiled (the pipeline reads its other attributes too: `last`)."""
 
         def __call__(self, *args, **kwargs):
-            t0 = time.perf_counter()
-            out = prof.runcall(stage, *args, **kwargs)
-            walls.append((time.perf_counter() - t0) * 1000.0)
-            return out
+            return timed(stage, *args, **kwargs)
 
         def __getattr__(self, name):
             return getattr(stage, name)
 
-    profiled = Profiled()
+    estimate, warm = pipe._estimate_beside, [False]
+    if a.part == "worker":   # the worker calls the attribute it finds at submission: the estimates after the warm-up
+        pipe._estimate_beside = lambda *args: timed(estimate, *args) if warm[0] else estimate(*args)
     for k, frame in enumerate(iter_frames(rec, indices)):
-        if a.whole and k >= a.warmup:
-            t0 = time.perf_counter()
-            prof.runcall(pipe.process, frame)
-            walls.append((time.perf_counter() - t0) * 1000.0)
+        warm[0] = k >= a.warmup
+        if a.part == "frame" and warm[0]:
+            timed(pipe.process, frame)
             continue
-        pipe.render = profiled if k >= a.warmup and stage is not None else stage
+        pipe.render = Profiled() if a.part == "render" and warm[0] else stage
         pipe.process(frame)
+    pipe.wait_for_estimate()
     pipe.close()
     n = len(walls)
     stats = pstats.Stats(prof)
@@ -76,15 +88,14 @@ def main() -> None:
     for (path, line, name), (_, calls, own, cum, _) in stats.stats.items():
         rows.append({"function": f"{path.split('site-packages/')[-1]}:{line}({name})", "calls_per_frame":
                      round(calls / n, 2), "own_ms": round(own * 1000 / n, 3), "cumulative_ms": round(cum * 1000 / n, 3)})
-    part = "frame" if a.whole else "render"
-    out = {"session": a.session, "device": pipe.device, "frames_profiled": n, "stride": a.stride, "rays": a.rays,
-           "bands": a.bands, "every": a.every, "objects": len(s.objects), f"{part}_ms_mean": round(sum(walls) / n, 3),
+    out = {"session": a.session, "device": pipe.device, "part": a.part, "calls_profiled": n, "stride": a.stride,
+           "rays": a.rays, "bands": a.bands, "every": a.every, "asynchronous": a.asynchronous, "objects": len(s.objects),
+           "ms_mean": round(sum(walls) / n, 3),
            "by_cumulative": sorted(rows, key=lambda r: -r["cumulative_ms"])[:a.top],
            "by_own": sorted(rows, key=lambda r: -r["own_ms"])[:a.top]}
-    print(f"{'whole frame' if a.whole else 'render stage'} on {pipe.device}: {out[part + '_ms_mean']} ms a frame "
-          f"(profiled, {n} frames)")
+    print(f"{a.part} on {pipe.device}: {out['ms_mean']} ms a call (profiled, {n} calls)")
     for key in ("by_cumulative", "by_own"):
-        print(f"-- {key} (ms a frame)")
+        print(f"-- {key} (ms a call)")
         for r in out[key]:
             print(f"{r['cumulative_ms']:8.2f} {r['own_ms']:8.2f} {r['calls_per_frame']:7.1f}  {r['function']}")
     if a.json:
