@@ -119,7 +119,7 @@ def _resolve_reference(g, pose, color, zbuf, real, window, tolerance):
 def test_gbuffer_resolve_kernel_follows_its_definition(tmp_path):
     """The resolve kernel against its definition in numpy on real draws (a rotated cube and a bunny-like sphere
     behind it, anti-aliased edges, a real surface hiding part of it, a window): the same values, the coverage too."""
-    from photoreg.render.gbuffer import _on_gl, _pow2
+    from photoreg.render.gbuffer import _on_gl
 
     objs = [_cube(tmp_path, position=[0.05, 0.0, 2.0], scale=0.35, rotation=[20.0, 35.0, 10.0]),
             ObjectConfig(mesh=str(_sphere(tmp_path)), position=[-0.15, 0.05, 2.4], scale=0.3, albedo=[0.2, 0.6, 0.3])]
@@ -132,8 +132,7 @@ def test_gbuffer_resolve_kernel_follows_its_definition(tmp_path):
     for window in ((0, 0, 64, 48), (10, 6, 55, 41)):
         x0, y0, x1, y1 = window
         h, w, s = y1 - y0, x1 - x0, g.s
-        size = (min(_pow2(w * s), 64 * s), min(_pow2(h * s), 48 * s))
-        color, zbuf = _on_gl(g._draw, pose, size, x0 * s, y0 * s).result()
+        color, zbuf = _on_gl(g._draw, pose, g.viewport(w, h), x0 * s, y0 * s).result()
         ref = _resolve_reference(g, pose, color[:h * s, :w * s], zbuf[:h * s, :w * s], real[y0:y1, x0:x1], window,
                                  0.01)
         gb = g.render(pose, real, tolerance=0.01, window=window)
@@ -141,6 +140,16 @@ def test_gbuffer_resolve_kernel_follows_its_definition(tmp_path):
         assert ref[0].max() > 0.99 and 0 < ((ref[0] > 0) & (ref[0] < 1)).sum()   # covered, edges anti-aliased
         for a, b in zip(got, ref):
             np.testing.assert_allclose(a, b, rtol=0, atol=1e-6)
+
+
+def test_gbuffer_viewport_holds_the_window(tmp_path):
+    """A window's viewport holds its supersampled pixels, at most the supersampled frame's: with EGL rounded up to
+    VIEWPORT_STEP (any size of framebuffer), with OSMesa (a context per size) to powers of two (few sizes)."""
+    g = GBufferRenderer(load_scene([_cube(tmp_path)]), Intrinsics(640, 480, 500.0, 500.0, 319.5, 239.5), 2)
+    for gl_windows, expected in ((False, [(1024, 960), (128, 64), (1280, 960)]),
+                                 (True, [(640, 640), (128, 128), (1280, 960)])):
+        g.gl_windows = gl_windows
+        assert [g.viewport(w, h) for w, h in ((300, 320), (40, 20), (640, 480))] == expected
 
 
 def test_gbuffer_renderers_share_one_offscreen_renderer(tmp_path):

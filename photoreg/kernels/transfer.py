@@ -180,15 +180,15 @@ def _any_blocked(sdf: wp.array3d(dtype=SDF_DTYPE), empty: wp.array3d(dtype=wp.ui
                  voxel: float, trunc: float, points: wp.array(dtype=wp.vec3), normals: wp.array(dtype=wp.vec3),
                  dirs: wp.array(dtype=wp.vec3), offset: float, ray_length: float, min_step: float, row0: int,
                  hit: wp.array(dtype=wp.uint8)):
-    i = row0 + wp.tid()
+    t, d = wp.tid()
+    i = row0 + t
+    if hit[i] != wp.uint8(0):   # another of its rays is blocked (on the CPU a point's rays run in order: the first)
+        return
     n = normals[i]
-    o = points[i] + n * offset
-    for d in range(dirs.shape[0]):
-        w = dirs[d]
-        if wp.dot(n, w) > 0.0:
-            if ray_blocked(sdf, empty, cell, origin, voxel, trunc, o, w, ray_length, min_step):
-                hit[i] = wp.uint8(1)
-                break
+    w = dirs[d]
+    if wp.dot(n, w) > 0.0:
+        if ray_blocked(sdf, empty, cell, origin, voxel, trunc, points[i] + n * offset, w, ray_length, min_step):
+            hit[i] = wp.uint8(1)
 
 
 KEY_OFFSET = wp.constant(CELL_OFFSET)
@@ -321,7 +321,9 @@ def any_blocked(grid: DenseGrid, points, normals, dirs, offset: float, ray_lengt
     the virtual objects' grid: the points whose R_TRV can differ from R_TR (their VIRTUAL flags)."""
     device, p, n, w = _checked_rays(grid, points, normals, dirs, offset, ray_length, device, min_step_voxels, None)
     hit = wp.zeros(p.shape[0], dtype=wp.uint8, device=device)
-    launch_rows(_any_blocked, hit.shape, device=device, threads=threads,
+    # a thread per ray, not per point marching its rays in turn: a point's hundred-odd marches one after another
+    # left the GPU's threads waiting on memory (TUM with the bunny: some 2500 points near it)
+    launch_rows(_any_blocked, (p.shape[0], w.shape[0]), device=device, threads=threads,
                 inputs=[grid.sdf, grid.empty, int(grid.cell), wp.vec3(*grid.origin), float(grid.voxel_size),
                         float(grid.trunc), p, n, w, float(offset), float(ray_length),
                         float(min_step_voxels * grid.voxel_size)],

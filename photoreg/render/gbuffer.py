@@ -135,8 +135,11 @@ def _offscreen(pr, width: int, height: int) -> tuple[object, bool]:
     return _OFFSCREEN[(width, height)]
 
 
+VIEWPORT_STEP = 128   # with EGL a viewport's sides are multiples of this (supersampled pixels)
+
+
 def _pow2(n: int) -> int:
-    """The smallest power of two >= n (at least 64): the viewport side for a window side of n pixels."""
+    """The smallest power of two >= n (at least 64)."""
     return max(64, 1 << (int(n) - 1).bit_length())
 
 
@@ -180,6 +183,15 @@ class GBufferRenderer:
             self._views[key] = scene, cam, node, gl
         return self._views[key]
 
+    def viewport(self, w: int, h: int) -> tuple[int, int]:
+        """The viewport (width, height) that draws a window of w x h pixels (render), at most the supersampled frame:
+        with EGL its sides rounded up to VIEWPORT_STEP, with OSMesa (a context per size) to powers of two. pyrender
+        reads back and converts the whole viewport: TUM's windows round the bunny (some 300 x 320 pixels, 600 x 640
+        supersampled) read 1024 x 960 as powers of two, 640 x 640 in steps."""
+        full = (self.intr.width * self.s, self.intr.height * self.s)
+        side = (lambda n: -(-n // VIEWPORT_STEP) * VIEWPORT_STEP) if self.gl_windows else _pow2
+        return min(side(w * self.s), full[0]), min(side(h * self.s), full[1])
+
     def _draw(self, pose: np.ndarray, size: tuple[int, int], vx: int, vy: int) -> tuple[np.ndarray, np.ndarray]:
         """(colour, depth buffer) of the view from `pose` into a viewport of `size` whose corner is the supersampled
         pixel (vx, vy); on the GL thread."""
@@ -201,8 +213,8 @@ class GBufferRenderer:
         if not (0 <= x0 <= x1 <= W and 0 <= y0 <= y1 <= H):
             raise ValueError(f"GBufferRenderer.render: window {window} is not a pixel box of the {W}x{H} frame")
         h, w = y1 - y0, x1 - x0
-        # Only the window is rasterised and read back, into a viewport of power-of-two sides at least its size
-        # (at most the frame's; the window in its top-left corner): EGL resizes its framebuffer only when that
+        # Only the window is rasterised and read back, into a viewport of rounded sides at least its size (at most
+        # the frame's; the window in its top-left corner; `viewport`): EGL resizes its framebuffer only when that
         # size changes, and OSMesa, which makes a context per size, gets a renderer per size of the few there
         # are (TUM with the bunny on this CPU: 18-25 ms a frame for the whole 1280 x 960 supersampled frame before).
         real = np.zeros((h, w), np.float32)   # 0: no real surface known
@@ -215,8 +227,7 @@ class GBufferRenderer:
             empty = np.zeros((h, w, 3), np.float32)
             return GBuffer(np.zeros((H, W), np.float32), (x0, y0, x1, y1), np.zeros((h, w), np.float32), empty,
                            empty.copy(), empty.copy())
-        size = (min(_pow2(w * s), W * s), min(_pow2(h * s), H * s))
-        color, zbuf = _on_gl(self._draw, pose, size, x0 * s, y0 * s).result()
+        color, zbuf = _on_gl(self._draw, pose, self.viewport(w, h), x0 * s, y0 * s).result()
         cover, depth, position, normal, albedo = resolve(color[:h * s, :w * s, :3], zbuf[:h * s, :w * s], real, s,
                                                          (x0 * s, y0 * s), self.hi, pose, self.faces, tolerance)
         coverage = np.zeros((H, W), np.float32)

@@ -30,6 +30,8 @@ class RenderStage:
         self.scene = load_scene(session.objects)
         self.virtual = voxel_grid(self.scene, session.reconstruction.voxel_size, device)
         self.gbuffer = GBufferRenderer(self.scene, intrinsics, SUPERSAMPLE, device)
+        lo, hi = self.scene.bounds   # the objects' box's corners (window)
+        self._corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
         self._dirs: dict[int, tuple[np.ndarray, np.ndarray]] = {}
         self.last: Layers | None = None
         self.last_input: RenderInput | None = None
@@ -45,9 +47,7 @@ class RenderStage:
         of the objects' bounding box, widened by one render stride and a pixel (the reach of the seam band,
         composite.refine_seam); the whole frame when a corner of that box is not in front of the camera."""
         W, H = self.intrinsics.width, self.intrinsics.height
-        lo, hi = self.scene.bounds
-        corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
-        cam = (corners - pose[:3, 3]) @ pose[:3, :3]          # world -> camera (pose is camera-to-world)
+        cam = (self._corners - pose[:3, 3]) @ pose[:3, :3]          # world -> camera (pose is camera-to-world)
         if not np.all(cam[:, 2] > self.session.reconstruction.depth_min):
             return 0, 0, W, H
         uv = cam[:, :2] / cam[:, 2:] @ np.diag([self.intrinsics.fx, self.intrinsics.fy]) + [self.intrinsics.cx,
