@@ -4,10 +4,10 @@ warm-up frames; prints and writes the functions with the most time per frame, cu
 
     python3 benchmarks/render_profile.py sessions/tum_fr1_rpy.toml --device cuda --frames 0:25 --json OUT.json
 
-`--part frame` profiles whole frames instead (every stage; a session without objects too), `--part worker` the
-estimates of the lighting's worker thread (with `--async`: lighting.asynchronous; what it does while holding the
-interpreter lock slows the frames beside it); `--every N` holds each estimate for N frames (lighting.every: `--every
-1000` profiles frames that only take their exposure gain).
+`--part frame` profiles whole frames instead (every stage; a session without objects too); `--every N` holds each
+estimate for N frames (lighting.every: `--every 1000` profiles frames that only take their exposure gain). With
+`--async` (lighting.asynchronous) the worker thread's calls land in the profile too: Python 3.12's cProfile watches
+every thread (sys.monitoring) while it runs.
 
 On CUDA a kernel's time lands where the host waits for it (a synchronisation, a copy to the host).
 """
@@ -32,8 +32,8 @@ def main() -> None:
     ap.add_argument("--bands", type=int, default=3)
     ap.add_argument("--every", type=int, default=1)
     ap.add_argument("--async", dest="asynchronous", action="store_true", help="lighting.asynchronous")
-    ap.add_argument("--part", choices=("render", "frame", "worker"), default="render",
-                    help="what to profile: the render stage, whole frames or the worker's estimates (with --async)")
+    ap.add_argument("--part", choices=("render", "frame"), default="render",
+                    help="what to profile: the render stage or whole frames")
     ap.add_argument("--top", type=int, default=30)
     ap.add_argument("--json")
     a = ap.parse_args()
@@ -47,8 +47,6 @@ def main() -> None:
     s.lighting.every, s.lighting.asynchronous = a.every, a.asynchronous
     if not s.objects and a.part == "render":
         sys.exit(f"{a.session}: no [[objects]], no render stage to profile")
-    if a.part == "worker" and not a.asynchronous:
-        sys.exit("--part worker needs --async (no worker without it)")
     rec = open_recording(s.recording.path, fmt=s.recording.format)
     indices = parse_frames(a.frames, len(rec))
     pipe = Pipeline(s, rec.intrinsics)
@@ -70,15 +68,11 @@ def main() -> None:
         def __getattr__(self, name):
             return getattr(stage, name)
 
-    estimate, warm = pipe._estimate_beside, [False]
-    if a.part == "worker":   # the worker calls the attribute it finds at submission: the estimates after the warm-up
-        pipe._estimate_beside = lambda *args: timed(estimate, *args) if warm[0] else estimate(*args)
     for k, frame in enumerate(iter_frames(rec, indices)):
-        warm[0] = k >= a.warmup
-        if a.part == "frame" and warm[0]:
+        if a.part == "frame" and k >= a.warmup:
             timed(pipe.process, frame)
             continue
-        pipe.render = Profiled() if a.part == "render" and warm[0] else stage
+        pipe.render = Profiled() if a.part == "render" and k >= a.warmup else stage
         pipe.process(frame)
     pipe.wait_for_estimate()
     pipe.close()
