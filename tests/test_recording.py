@@ -420,3 +420,27 @@ def test_atomic_writes_use_the_umask_not_0600(tmp_path):
     finally:
         os.umask(old)
     assert (tmp_path / "a.txt").stat().st_mode & 0o777 == 0o644
+
+
+def test_check_pose_rejects_what_is_not_rigid_even_after_a_rigid_pose():
+    """check_pose passes the pose its thread checked last at once (a frame's stages check one pose several times):
+    anything else is still checked, in this thread and in another."""
+    import threading
+
+    good = np.eye(4)
+    good[:3, :3] = Rotation.from_euler("xyz", [10.0, 20.0, 30.0], degrees=True).as_matrix()
+    good[:3, 3] = [0.1, 0.2, 0.3]
+    scaled, nan = good.copy(), good.copy()
+    scaled[:3, :3] *= 1.1
+    nan[0, 3] = np.nan
+    for _ in range(2):
+        np.testing.assert_array_equal(check_pose(good, "here"), good)
+        with pytest.raises(ValueError, match="there: pose is not a rigid transform"):
+            check_pose(scaled, "there")
+        with pytest.raises(ValueError, match="not a finite 4x4"):
+            check_pose(nan, "there")
+    errors = []
+    worker = threading.Thread(target=lambda: errors.append(pytest.raises(ValueError, check_pose, scaled, "other")))
+    worker.start()
+    worker.join()
+    assert len(errors) == 1
