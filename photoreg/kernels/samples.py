@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from functools import lru_cache
 
 import numpy as np
 
@@ -122,15 +123,10 @@ def _sample_maps(srgb: wp.array2d(dtype=wp.vec3ub), table: wp.array(dtype=wp.flo
     flags[r, tc] = wp.uint8(out)
 
 
-_TABLES: dict = {}
-
-
+@lru_cache(maxsize=None)
 def _table(device: str):
     """io.images.SRGB_TO_LINEAR on `device` (uploaded once)."""
-    key = str(wp.get_device(device))
-    if key not in _TABLES:
-        _TABLES[key] = wp.array(SRGB_TO_LINEAR, dtype=wp.float32, device=device)
-    return _TABLES[key]
+    return wp.array(SRGB_TO_LINEAR, dtype=wp.float32, device=device)
 
 
 def sample_maps(colour: np.ndarray, usable: np.ndarray, depth: np.ndarray, intr: Intrinsics, pose: np.ndarray,

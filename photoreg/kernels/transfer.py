@@ -317,8 +317,8 @@ def visibility(grid: DenseGrid, points, normals, dirs, offset: float, ray_length
 def any_blocked(grid: DenseGrid, points, normals, dirs, offset: float, ray_length: float, device: str | None = None,
                 min_step_voxels: float = 0.5, threads: int | None = None) -> np.ndarray:
     """(N,) bool: some ray of `dirs` in the normal's hemisphere from points[i] + normals[i] * offset is blocked
-    by `grid` within ray_length; the same march as the occlusion pass, stopping at a point's first hit. With
-    the virtual objects' grid: the points whose R_TRV can differ from R_TR (their VIRTUAL flags)."""
+    by `grid` within ray_length; the same march as the occlusion pass, a point's rays skipped once one is found
+    blocked. With the virtual objects' grid: the points whose R_TRV can differ from R_TR (their VIRTUAL flags)."""
     device, p, n, w = _checked_rays(grid, points, normals, dirs, offset, ray_length, device, min_step_voxels, None)
     hit = wp.zeros(p.shape[0], dtype=wp.uint8, device=device)
     # a thread per ray, not per point marching its rays in turn: a point's hundred-odd marches one after another
