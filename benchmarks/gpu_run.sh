@@ -43,7 +43,7 @@
 #              `--async`, alternating, HELD_ROUNDS (default "1 2") rounds: what the worker still costs the frames
 #              (OUTDIR/held.json)
 #   ab         this tree against the package in $OLD (an earlier commit: `git archive COMMIT photoreg | tar -x -C OLD`),
-#              `photoreg bench speed $AB_FLAGS` alternating, AB_ROUNDS (default "1 2") rounds: RECORDING at stride 4 /
+#              `photoreg bench speed $AB_FLAGS` alternating (the old first in odd rounds, this tree in even), AB_ROUNDS (default "1 2") rounds: RECORDING at stride 4 /
 #              64 rays / 3 bands and stride 1 / 169 / 4, the bunny (sessions/tum_fr1_rpy.toml) (OUTDIR/ab.json); AB_RUNS
 #              (comma-separated "KIND STRIDE RAYS BANDS", KIND bare, bunny or demo) picks other settings
 #   sweep      `photoreg bench sweep --device cuda` on SWEEP_SCENES (recordings with lighting_gt.json
@@ -222,13 +222,14 @@ for step in "$@"; do
       alternate /tmp/bounce "${BOUNCE_ROUNDS:-1 2}" on "" off --no-observed-bounce
       merge /tmp/bounce "$out/bounce.json" ;;
     ab)
-      mkdir -p /tmp/ab
+      rm -rf /tmp/ab; mkdir -p /tmp/ab   # no figures of an earlier ab step merged in
       IFS=, read -r -a runs <<< "${AB_RUNS:-bare 4 64 3,bare 1 169 4,bunny 4 64 3}"
       for round in ${AB_ROUNDS:-1 2}; do
         for run in "${runs[@]}"; do
           read -r kind stride rays bands <<< "$run"
           src=$(realpath "$(input_of $kind)")
-          for code in old new; do   # the old package first on the path, run from elsewhere (not this tree's)
+          codes="old new"; [ $((round % 2)) = 0 ] && codes="new old"   # each first in every other round
+          for code in $codes; do   # the old package first on the path, run from elsewhere (not this tree's)
             (cd $([ $code = old ] && echo "$OLD" || echo "$PWD") && PYTHONPATH=$PWD:$PYTHONPATH python3 -m photoreg \
               bench speed "$src" --device cuda --frames 0:30 --warmup 3 --stride $stride --rays $rays --bands $bands \
               ${AB_FLAGS:-} --json "/tmp/ab/${kind}_s${stride}_${code}_$round.json" 2>/dev/null)

@@ -270,8 +270,10 @@ def test_shaded_pass_is_the_lighting_times_the_transfer(tmp_path):
     np.testing.assert_allclose(out[:, 7], sh.blocked_share(tr.transfer_rv)[:, 0], atol=1e-6)
     shadowed = np.abs(out[:, 3:6] - out[:, :3]).max(axis=1) > 1e-3
     assert 10 < shadowed.sum() < len(pts) and (out[:, 7] >= out[:, 6] - 1e-6).all()
-    with pytest.raises(ValueError, match="radiance"):
-        shaded_pass(floor, virt, pts, normals, dirs, table[:, :3], 0.03, 0.3)
+    for bad, why in ((table[:, :3], r"must be \(\.\.\., 4\)"), (table[:-1], "rows for"),
+                     (np.full_like(table, np.nan), "non-finite")):
+        with pytest.raises(ValueError, match="weighted radiance.*" + why):
+            shaded_pass(floor, virt, pts, normals, dirs, bad, 0.03, 0.3)
 
 
 def _render_floor(tmp_path, shadows: str, stride: int = 2, surface: bool = False):

@@ -12,6 +12,7 @@ from __future__ import annotations
 import numpy as np
 
 from photoreg.device import init_warp
+from photoreg.kernels.packing import Packed, upload
 
 wp = init_warp()
 
@@ -81,16 +82,12 @@ def resolve(color: np.ndarray, zbuf: np.ndarray, real: np.ndarray, s: int, origi
     supersampled top-left pixel `origin` (u0, v0), the supersampled intrinsics `intr_hi`, camera-to-world `pose`."""
     h, w = real.shape
     dev = faces.device
-    as_wp = dict(device=dev, copy=False) if wp.get_device(dev).is_cpu else dict(device=dev)   # the CPU reads them
-    out = [wp.empty((h, w), dtype=wp.float32, device=dev), wp.empty((h, w), dtype=wp.float32, device=dev)]
-    out += [wp.empty((h, w), dtype=wp.vec3, device=dev) for _ in range(3)]
+    out = Packed([((h, w), wp.float32)] * 2 + [((h, w), wp.vec3)] * 3, dev)   # one read-back for the five
     pose = np.asarray(pose, np.float64)
     wp.launch(_resolve, dim=(h, w), device=dev,
-              inputs=[wp.array(np.ascontiguousarray(color), dtype=wp.uint8, **as_wp),
-                      wp.array(np.ascontiguousarray(zbuf, np.float32), dtype=wp.float32, **as_wp),
-                      wp.array(np.ascontiguousarray(real, np.float32), dtype=wp.float32, **as_wp),
+              inputs=[*upload([color, zbuf, real], [wp.uint8, wp.float32, wp.float32], dev),
                       int(s), int(origin[0]), int(origin[1]), float(intr_hi.fx), float(intr_hi.fy), float(intr_hi.cx),
                       float(intr_hi.cy), wp.mat33d(*pose[:3, :3].ravel()), wp.vec3d(*pose[:3, 3]), faces.p0,
                       faces.normal, faces.albedo, float(np.float32(tolerance))],
-              outputs=out)
-    return tuple(a.numpy() for a in out)
+              outputs=out.arrays)
+    return tuple(out.numpy())

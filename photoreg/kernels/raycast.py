@@ -23,6 +23,7 @@ from photoreg.device import init_warp
 from photoreg.io.poses import check_pose
 from photoreg.kernels.grid import SDF_DTYPE, DenseGrid, free_run, ray_box, sample_sdf
 from photoreg.kernels.launch import launch_rows
+from photoreg.kernels.packing import Packed
 from photoreg.types import Intrinsics
 
 wp = init_warp()
@@ -179,10 +180,9 @@ def raycast_surface(grid: DenseGrid, intr: Intrinsics, pose_c2w: np.ndarray, dep
                          f"{normal_smoothing})")
     intr.check("raycast_surface")
     h, w = -(-intr.height // stride), -(-intr.width // stride)
-    # not cleared: the kernel writes every pixel (zeros where no surface is found)
-    depth = wp.empty((h, w), dtype=wp.float32, device=device)
-    vertex = wp.empty((h, w), dtype=wp.vec3, device=device)
-    normal = wp.empty((h, w), dtype=wp.vec3, device=device)
+    # not cleared: the kernel writes every pixel (zeros where no surface is found); one read-back for the three
+    out = Packed([((h, w), wp.float32), ((h, w), wp.vec3), ((h, w), wp.vec3)], device)
+    depth, vertex, normal = out.arrays
     launch_rows(_raycast, (h, w), device=device, threads=threads,
                 inputs=[grid.sdf, grid.empty, int(grid.cell), wp.vec3(*grid.origin), float(grid.voxel_size),
                         float(grid.trunc),
@@ -192,6 +192,6 @@ def raycast_surface(grid: DenseGrid, intr: Intrinsics, pose_c2w: np.ndarray, dep
                         float(normal_smoothing * grid.voxel_size / SMOOTH_GRID),
                         SMOOTH_MIN_COS],
                 outputs=[depth, vertex, normal])
-    d = depth.numpy()
-    return SurfaceMaps(depth=d, vertex=vertex.numpy(), normal=normal.numpy(), valid=d > 0, stride=stride,
+    d, v, n = out.numpy()
+    return SurfaceMaps(depth=d, vertex=v, normal=n, valid=d > 0, stride=stride,
                        depth_wp=depth, vertex_wp=vertex, normal_wp=normal)

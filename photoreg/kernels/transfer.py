@@ -27,6 +27,7 @@ import numpy as np
 from photoreg.device import init_warp
 from photoreg.kernels.grid import SDF_DTYPE, DenseGrid, free_run, ray_box, sample_sdf
 from photoreg.kernels.launch import launch_rows
+from photoreg.kernels.packing import upload
 from photoreg.lighting.exposure import CELL_BITS, CELL_OFFSET
 from photoreg.lighting.sh import bands_of, fibonacci_sphere, sh_basis
 
@@ -247,31 +248,41 @@ def _observed_bounce(hits: wp.array2d(dtype=wp.float32), points: wp.array(dtype=
     out[i, 1] = unseen
 
 
-def _as_warp(a, dtype, device: str, what: str, inner: int | None):
-    """A 1-D vec3 (inner=3) or 2-D float (inner=None) Warp array on `device` from numpy or Warp input."""
-    if isinstance(a, wp.array):
-        if str(a.device) != device:
-            raise ValueError(f"{what} lives on {a.device}, expected {device}")
-        if a.dtype != dtype:
-            raise ValueError(f"{what} has dtype {a.dtype}, expected {dtype}")
-        if inner is None and a.ndim != 2:
+def _as_warp(device: str, *inputs: tuple) -> list[wp.array]:
+    """Warp arrays on `device` of the inputs (array, Warp dtype, name, inner): vec rows (inner = 3 or 4: (..., inner),
+    flattened to (N,)) or 2-D floats (inner None), numpy or Warp. Numpy ones are checked finite and uploaded in one copy
+    (packing.upload); Warp ones must already be on `device` with the dtype."""
+    out, host = [], []
+    for a, dtype, what, inner in inputs:
+        if isinstance(a, wp.array):
+            if str(a.device) != device:
+                raise ValueError(f"{what} lives on {a.device}, expected {device}")
+            if a.dtype != dtype:
+                raise ValueError(f"{what} has dtype {a.dtype}, expected {dtype}")
+            if inner is None and a.ndim != 2:
+                raise ValueError(f"{what} must be 2-D, got {a.shape}")
+            out.append(a.flatten() if inner is not None else a)
+            continue
+        a = np.asarray(a, dtype=np.float32)
+        if inner is not None:
+            if a.shape[-1:] != (inner,):
+                raise ValueError(f"{what} must be (..., {inner}), got {a.shape}")
+            a = a.reshape(-1, inner)
+        elif a.ndim != 2:
             raise ValueError(f"{what} must be 2-D, got {a.shape}")
-        return a.flatten() if inner is not None else a
-    a = np.asarray(a, dtype=np.float32)
-    if inner is not None:
-        if a.shape[-1] != inner:
-            raise ValueError(f"{what} must be (..., {inner}), got {a.shape}")
-        a = a.reshape(-1, inner)
-    elif a.ndim != 2:
-        raise ValueError(f"{what} must be 2-D, got {a.shape}")
-    if not np.all(np.isfinite(a)):
-        raise ValueError(f"{what} has non-finite values")
-    return wp.array(np.ascontiguousarray(a), dtype=dtype, device=device)
+        if not np.all(np.isfinite(a)):
+            raise ValueError(f"{what} has non-finite values")
+        host.append((len(out), a, dtype))
+        out.append(None)
+    for (i, _, _), arr in zip(host, upload([a for _, a, _ in host], [dt for _, _, dt in host], device)):
+        out[i] = arr
+    return out
 
 
 def _checked_rays(grid: DenseGrid, points, normals, dirs, offset: float, ray_length: float, device: str | None,
-                  min_step_voxels: float, virtual: DenseGrid | None):
-    """Validated (device, points, normals, dirs) Warp arrays for a ray pass over `grid` (ValueError otherwise)."""
+                  min_step_voxels: float, virtual: DenseGrid | None, *more: tuple) -> list:
+    """Validated [device, points, normals, dirs] Warp arrays for a ray pass over `grid` (ValueError otherwise), then
+    those of `more` inputs (_as_warp's), all uploaded together."""
     device = grid.device if device is None else str(wp.get_device(device))
     if device != grid.device:
         raise ValueError(f"radiance_transfer: grid lives on {grid.device}, asked to run on {device}")
@@ -280,12 +291,11 @@ def _checked_rays(grid: DenseGrid, points, normals, dirs, offset: float, ray_len
     if not (offset >= 0 and ray_length > 0 and min_step_voxels > 0):
         raise ValueError(f"radiance_transfer: need offset >= 0, ray_length > 0, min_step_voxels > 0 "
                          f"(got {offset}, {ray_length}, {min_step_voxels})")
-    p = _as_warp(points, wp.vec3, device, "points", 3)
-    n = _as_warp(normals, wp.vec3, device, "normals", 3)
-    w = _as_warp(dirs, wp.vec3, device, "dirs", 3)
+    p, n, w, *rest = _as_warp(device, (points, wp.vec3, "points", 3), (normals, wp.vec3, "normals", 3),
+                              (dirs, wp.vec3, "dirs", 3), *more)
     if p.shape != n.shape:
         raise ValueError(f"points {p.shape} and normals {n.shape} differ in count")
-    return device, p, n, w
+    return [device, p, n, w, *rest]
 
 
 def _occlusion_pass(grid: DenseGrid, p, n, w, offset: float, ray_length: float, device: str, min_step_voxels: float,
@@ -341,8 +351,8 @@ def radiance_transfer(grid: DenseGrid, points, normals, dirs, ytable, offset: fl
     `hit_distances` the distance along each ray from points + normals * offset to the real surface that
     blocks it (hit_distance_wp; observed_bounce reads it). On the CPU the launches are split over `threads`
     threads (photoreg.kernels.launch)."""
-    device, p, n, w = _checked_rays(grid, points, normals, dirs, offset, ray_length, device, min_step_voxels, virtual)
-    y = _as_warp(ytable, wp.float32, device, "ytable", None)
+    device, p, n, w, y = _checked_rays(grid, points, normals, dirs, offset, ray_length, device, min_step_voxels,
+                                       virtual, (ytable, wp.float32, "ytable", None))
     if y.shape[0] != w.shape[0]:
         raise ValueError(f"ytable has {y.shape[0]} rows for {w.shape[0]} directions")
     bands_of(y.shape[1])
@@ -376,15 +386,14 @@ def shaded_pass(grid: DenseGrid, virtual: DenseGrid, points, normals, dirs, weig
     max(n.w, 0) times column 3, clipped to [0, 1]. For D equal-area directions over the sphere (dw / pi = 4 / D) and
     L_d = F.Y(w_d), that is F.R_TR, F.R_TRV and sh.blocked_share of radiance_transfer's R_TR and R_TRV (by
     linearity), in one thread per point."""
-    device, p, n, w = _checked_rays(grid, points, normals, dirs, offset, ray_length, None, min_step_voxels, virtual)
-    table = np.ascontiguousarray(weighted, dtype=np.float32)
-    if table.shape != (w.shape[0], 4) or not np.isfinite(table).all():
-        raise ValueError(f"shaded_pass: the weighted radiance must be finite, ({w.shape[0]}, 4) for the directions; "
-                         f"got {table.shape}")
+    device, p, n, w, table = _checked_rays(grid, points, normals, dirs, offset, ray_length, None, min_step_voxels,
+                                           virtual, (weighted, wp.vec4, "shaded_pass: the weighted radiance", 4))
+    if table.shape[0] != w.shape[0]:
+        raise ValueError(f"shaded_pass: the weighted radiance has {table.shape[0]} rows for {w.shape[0]} directions")
     occ = _occlusion_pass(grid, p, n, w, offset, ray_length, device, min_step_voxels, virtual, threads)
     out = wp.empty((p.shape[0], 8), dtype=wp.float32, device=device)   # every row written
     launch_rows(_shade, (p.shape[0],), device=device, threads=threads,
-                inputs=[n, w, wp.array(table, dtype=wp.vec4, device=device), occ], outputs=[out])
+                inputs=[n, w, table, occ], outputs=[out])
     return out.numpy()
 
 
@@ -398,14 +407,12 @@ def observed_bounce(tr: TransferResult, points, normals, dirs, offset: float, ce
         raise ValueError("observed_bounce needs the hit distances of the transfer pass (hit_distances=True)")
     hits = tr.hit_distance_wp
     device = str(hits.device)
-    p = _as_warp(points, wp.vec3, device, "points", 3)
-    n = _as_warp(normals, wp.vec3, device, "normals", 3)
-    w = _as_warp(dirs, wp.vec3, device, "dirs", 3)
+    p, n, w = _as_warp(device, (points, wp.vec3, "points", 3), (normals, wp.vec3, "normals", 3),
+                       (dirs, wp.vec3, "dirs", 3))
     if p.shape[0] != hits.shape[0] or n.shape[0] != hits.shape[0] or w.shape[0] != hits.shape[1]:
         raise ValueError(f"observed_bounce: {p.shape[0]} points, {n.shape[0]} normals and {w.shape[0]} directions "
                          f"for hit distances of shape {hits.shape}")
-    k = wp.array(np.ascontiguousarray(keys, dtype=np.int64), dtype=wp.int64, device=device)
-    lum = wp.array(np.ascontiguousarray(luminance, dtype=np.float32), dtype=wp.float32, device=device)
+    k, lum = upload([np.asarray(keys, np.int64), np.asarray(luminance, np.float32)], [wp.int64, wp.float32], device)
     out = wp.zeros((hits.shape[0], 2), dtype=wp.float32, device=device)
     launch_rows(_observed_bounce, (hits.shape[0],), device=device, threads=threads,
                 inputs=[hits, p, n, w, float(offset), 4.0 / hits.shape[1], float(cell), k, lum], outputs=[out])
