@@ -3,7 +3,8 @@
 # pyrender 0.1.45 with its pure-Python dependencies (trimesh among them: gpu_profile.py needs it) were
 # installed into /tmp/site, and libEGL and its kin unpacked from their Debian packages with `dpkg -x` into a
 # folder on LD_LIBRARY_PATH: open3d's CUDA build loads libEGL.so.1, which the image lacks): CUDA correctness,
-# then the figures of benchmarks/gpu.md, benchmarks/speed.md and benchmarks/renderers.md.
+# then the figures of benchmarks/gpu.md, benchmarks/speed.md and benchmarks/renderers.md. benchmarks/gpu_carry.sh
+# prepares all of that (and the data, and an earlier package for the A/B steps) and says which calls carry it over.
 # (2026-11-26: ../shared/hooks/device-wheels' chunks of 60 MB leave no room for the 10 MB working tree in a
 # 64 MiB call: split at 48 MB; its install.sh stopped after the first wheel (`tail | head` under pipefail), so the
 # wheels were cut from the joined chunks by their sizes in Python.)
