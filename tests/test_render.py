@@ -276,14 +276,21 @@ def test_shaded_pass_is_the_lighting_times_the_transfer(tmp_path):
             shaded_pass(floor, virt, pts, normals, dirs, bad, 0.03, 0.3)
 
 
-def _render_floor(tmp_path, shadows: str, stride: int = 2, surface: bool = False):
+def _render_floor(tmp_path, shadows: str, stride: int = 2, surface: bool = False, window: bool = False):
     """A cube on the real floor seen from above, lit from above: (camera, composite, layers, gbuffer); with
-    `surface` the full-resolution real surface goes in too (composite.refine_seam)."""
+    `surface` the full-resolution real surface goes in too (composite.refine_seam); with `window` the G-buffer is
+    drawn in the cube's box widened by stride + 1 pixels (as RenderStage.window), else in the whole frame."""
     scene = load_scene([_cube(tmp_path, scale=0.2, albedo=[0.5, 0.5, 0.5])])
     floor, virt = _floor_grid(), voxel_grid(scene, 0.02, "cpu")
     maps = raycast_surface(floor, INTR, LOOK_DOWN, 0.1, 3.0, stride=stride)
     full = raycast_surface(floor, INTR, LOOK_DOWN, 0.1, 3.0)
-    gb = GBufferRenderer(scene, INTR, 2).render(LOOK_DOWN, full.depth)
+    g = GBufferRenderer(scene, INTR, 2)
+    gb = g.render(LOOK_DOWN, full.depth)
+    if window:
+        rows, cols = np.nonzero(gb.coverage > 0)
+        m = stride + 1
+        gb = g.render(LOOK_DOWN, full.depth, window=(max(cols.min() - m, 0), max(rows.min() - m, 0),
+                                                     min(cols.max() + m + 1, 64), min(rows.max() + m + 1, 48)))
     up = sh.sh_basis(np.array([[0, 0, 1.0]]), 3)[0]
     F = np.outer([1.0, 0.9, 0.8], 2.0 * up) + np.outer([0.2, 0.2, 0.2], np.eye(9)[0])  # sky lobe overhead
     camera = np.ones((48, 64, 1), np.float32) * (0.5 * shade(F, sh.unoccluded_transfer(np.array([[0, 0, 1.0]]), 3)))
@@ -661,3 +668,20 @@ def test_frames_holding_one_estimate_share_its_light():
     assert traced is not held and traced is light(F.copy(), dict(sun))
     np.testing.assert_array_equal(traced.residual, traced_light(F, np.array(sun["direction"]),
                                                                 np.array(sun["irradiance"]), 0.05).residual)
+
+
+def test_voxel_region_holds_the_shadow_not_every_near_sample(tmp_path):
+    """The voxel renderer's region (what composite blends) is the box of what it changes: the object's window and the
+    pixels interpolated from samples an object's ray reaches, not every sample within a ray's length of the objects
+    (the rest keep a ratio of exactly 1)."""
+    camera, out, layers, gb = _render_floor(tmp_path, "voxel", window=True)
+    x0, y0, x1, y1 = layers.region
+    changed = (layers.ratio < 1.0).any(axis=2) | (layers.alpha > 0)
+    rows, cols = np.nonzero(changed)
+    stride = 2
+    assert x0 <= cols.min() and cols.max() < x1 and y0 <= rows.min() and rows.max() < y1
+    assert x0 >= cols.min() - 2 * stride and x1 <= cols.max() + 2 * stride + 2          # the interpolation's reach
+    assert y0 >= rows.min() - 2 * stride and y1 <= rows.max() + 2 * stride + 2
+    outside = np.ones(changed.shape, bool)
+    outside[y0:y1, x0:x1] = False
+    assert np.array_equal(out[outside], camera[outside]) and np.all(layers.ratio[outside] == 1.0)
