@@ -115,7 +115,7 @@ def render_voxel(inp: RenderInput) -> Layers:
     ratio_s = np.ones(maps.vertex.shape, np.float32)
     ratio_s[rows, cols] = ratio_pts[:n_near]
     # The interpolation and the composite need the box of the samples below 1 alone (bilinear taps all 1 give 1
-    # exactly; TUM with the bunny: some 225 x 200 pixels against the near samples' 340 x 280)
+    # exactly; TUM with the bunny: some 215 x 190 pixels against the near samples' 340 x 280)
     shadowed = np.zeros(near.shape, bool)
     shadowed[rows, cols] = (ratio_pts[:n_near] < 1.0).any(axis=1)
     ratio = upsample_ratio(ratio_s, shadowed, maps.stride, inp.camera.shape[:2])
