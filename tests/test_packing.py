@@ -26,10 +26,14 @@ def test_an_array_keeps_its_buffer_alive():
     pk = Packed([((4,), wp.float32), ((4,), wp.vec3)], "cpu")
     keep, owner = pk.arrays[1], weakref.ref(pk.buffer)
     keep.fill_(wp.vec3(1.0, 2.0, 3.0))
+    host = pk.numpy()[1]   # on the CPU a view of the buffer itself
     del pk
     gc.collect()
     assert owner() is not None and np.all(keep.numpy() == [1.0, 2.0, 3.0])
     del keep
+    gc.collect()
+    assert owner() is not None and np.all(host == [1.0, 2.0, 3.0])
+    del host
     gc.collect()
     assert owner() is None   # freed with the last array pointing into it
 
