@@ -670,11 +670,12 @@ def test_frames_holding_one_estimate_share_its_light():
                                                                 np.array(sun["irradiance"]), 0.05).residual)
 
 
-def test_voxel_region_holds_the_shadow_not_every_near_sample(tmp_path):
-    """The voxel renderer's region (what composite blends) is the box of what it changes: the object's window and the
-    pixels interpolated from the samples it darkens (ratio below 1), not every sample within a ray's length of the
-    objects (the rest keep a ratio of exactly 1)."""
-    camera, out, layers, gb = _render_floor(tmp_path, "voxel", window=True)
+@pytest.mark.parametrize("shadows", ["voxel", "shadowmap", "neural_soft"])
+def test_region_holds_the_shadow_not_every_near_sample(tmp_path, shadows):
+    """A renderer's region (what composite blends) is the box of what it changes: the object's window and the pixels
+    interpolated from the samples it darkens (ratio below 1; composite.changed_box), not every sample within reach of
+    the objects (the rest keep a ratio of exactly 1)."""
+    camera, out, layers, gb = _render_floor(tmp_path, shadows, window=True)
     x0, y0, x1, y1 = layers.region
     changed = (layers.ratio < 1.0).any(axis=2) | (layers.alpha > 0)
     rows, cols = np.nonzero(changed)

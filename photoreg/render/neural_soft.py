@@ -18,7 +18,8 @@ import os
 import numpy as np
 
 from photoreg.lighting.parametric import receiver_opacity
-from photoreg.render.composite import Layers, RenderInput, box_distance2, near_objects, refine_seam, upsample_ratio
+from photoreg.render.composite import (Layers, RenderInput, box_distance2, changed_box, darkened, near_objects,
+                                      refine_seam, upsample_ratio)
 from photoreg.render.neural_soft_weights import NeuralSoftSettings, find_weights, load_weights, weights_key
 from photoreg.render.scene import VirtualObject
 from photoreg.render.shadow_mlp import ShadowMLP, predict
@@ -97,6 +98,7 @@ def render_neural_soft(inp: RenderInput) -> Layers:
 
     ratio_s = np.ones(maps.vertex.shape, np.float32)
     ratio_s[near] = ratio_at(maps.vertex[near], maps.normal[near])
-    ratio = upsample_ratio(ratio_s, near, maps.stride, inp.camera.shape[:2])
-    refine_seam(ratio, inp, near, ratio_at)
-    return Layers(base.colour, base.alpha, ratio, base.notes + notes)
+    shadowed = darkened(ratio_s, near)
+    ratio = upsample_ratio(ratio_s, shadowed, maps.stride, inp.camera.shape[:2])
+    refine_seam(ratio, inp, near, ratio_at)   # inside the G-buffer's window
+    return Layers(base.colour, base.alpha, ratio, base.notes + notes, changed_box(inp, shadowed))

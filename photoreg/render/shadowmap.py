@@ -24,7 +24,8 @@ from photoreg.kernels.shadowmap import ShadowMap, depth_map, real_light_visibili
 from photoreg.lighting import albedo as alb
 from photoreg.lighting.solver import SolverConfig
 from photoreg.lighting.parametric import ParametricLight, light_basis, receiver_opacity
-from photoreg.render.composite import Layers, RenderInput, at_stride, refine_seam, upsample_ratio
+from photoreg.render.composite import (Layers, RenderInput, at_stride, changed_box, darkened, refine_seam,
+                                      upsample_ratio)
 
 RESOLUTION = 512        # shadow-map texels per side
 PAD_TEXELS = 2          # empty border around the objects' footprint
@@ -144,12 +145,13 @@ def render_shadowmap(inp: RenderInput) -> Layers:
 
     ratio_s = np.ones(maps.vertex.shape, np.float32)
     ratio_s[sel] = ratio_of(maps.vertex[sel], maps.normal[sel], strength[sel], all_vis[sel])
-    ratio = upsample_ratio(ratio_s, sel, maps.stride, inp.camera.shape[:2])
-    refine_seam(ratio, inp, sel, ratio_at)
+    shadowed = darkened(ratio_s, sel)
+    ratio = upsample_ratio(ratio_s, shadowed, maps.stride, inp.camera.shape[:2])
+    refine_seam(ratio, inp, sel, ratio_at)   # inside the G-buffer's window
 
     vpts, vnrm = gb.position[covered], gb.normal[covered]
     self_shadow, _ = shadow_lookup(smap, vpts, vnrm, tan_a, SELF_OFFSET_TEXELS * smap.texel, max_radius=MAX_RADIUS)
     vreal = real_light_visibility(inp.grid, vpts, vnrm, smap.d, smap.u, smap.v, tan_a, inp.offset, inp.ray_length,
                                   samples=REAL_SAMPLES)
     colour = _virtual_colour(inp, light, (1.0 - self_shadow) * vreal, covered)
-    return Layers(colour, gb.coverage, ratio, notes)
+    return Layers(colour, gb.coverage, ratio, notes, changed_box(inp, shadowed))

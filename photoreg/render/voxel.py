@@ -7,8 +7,8 @@ import numpy as np
 from photoreg.kernels.transfer import any_blocked, shaded_pass
 from photoreg.lighting import sh
 from photoreg.lighting.parametric import ParametricLight, cone_directions
-from photoreg.render.composite import (Layers, RenderInput, at_stride, bounce, box_distance2, near_objects, seam_band,
-                                      set_seam, shade, shadow_ratio, stride_box, union_box, upsample_ratio)
+from photoreg.render.composite import (Layers, RenderInput, at_stride, bounce, box_distance2, changed_box, darkened,
+                                      near_objects, seam_band, set_seam, shade, shadow_ratio, upsample_ratio)
 
 
 CLOSE = 0.5  # the real surface within this share of the objects' size is what their blocked rays see
@@ -114,10 +114,7 @@ def render_voxel(inp: RenderInput) -> Layers:
             ratio_pts[hit[lo:hi]] = shadow_ratio(*bounce(passes[n_obj + lo:n_obj + hi], l_real, l_virt))
     ratio_s = np.ones(maps.vertex.shape, np.float32)
     ratio_s[rows, cols] = ratio_pts[:n_near]
-    # The interpolation and the composite need the box of the samples below 1 alone (bilinear taps all 1 give 1
-    # exactly; TUM with the bunny: some 215 x 190 pixels against the near samples' 340 x 280)
-    shadowed = np.zeros(near.shape, bool)
-    shadowed[rows, cols] = (ratio_pts[:n_near] < 1.0).any(axis=1)
+    shadowed = darkened(ratio_s, near)
     ratio = upsample_ratio(ratio_s, shadowed, maps.stride, inp.camera.shape[:2])
     if band is not None:
         set_seam(ratio, inp, band, ratio_pts[n_near:])
@@ -129,8 +126,7 @@ def render_voxel(inp: RenderInput) -> Layers:
     if close.any():
         l_close = real_radiance(inp, *pixels(close), ratio_s)
         values = _object_colour(inp, bounce(on_object, l_close, l_close)[1], covered)
-    region = union_box(gb.window, stride_box(shadowed, maps.stride, ratio.shape[:2]))
-    return Layers(_virtual_colour(inp, values, covered), gb.coverage, ratio, notes, region)
+    return Layers(_virtual_colour(inp, values, covered), gb.coverage, ratio, notes, changed_box(inp, shadowed))
 
 
 def render_none(inp: RenderInput) -> Layers:
