@@ -100,5 +100,5 @@ def render_neural_soft(inp: RenderInput) -> Layers:
     ratio_s[near] = ratio_at(maps.vertex[near], maps.normal[near])
     shadowed = darkened(ratio_s, near)
     ratio = upsample_ratio(ratio_s, shadowed, maps.stride, inp.camera.shape[:2])
-    refine_seam(ratio, inp, near, ratio_at)   # inside the G-buffer's window
+    refine_seam(ratio, inp, near, ratio_at)   # inside inp.surface's window, which changed_box holds
     return Layers(base.colour, base.alpha, ratio, base.notes + notes, changed_box(inp, shadowed))

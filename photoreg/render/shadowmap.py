@@ -147,7 +147,7 @@ def render_shadowmap(inp: RenderInput) -> Layers:
     ratio_s[sel] = ratio_of(maps.vertex[sel], maps.normal[sel], strength[sel], all_vis[sel])
     shadowed = darkened(ratio_s, sel)
     ratio = upsample_ratio(ratio_s, shadowed, maps.stride, inp.camera.shape[:2])
-    refine_seam(ratio, inp, sel, ratio_at)   # inside the G-buffer's window
+    refine_seam(ratio, inp, sel, ratio_at)   # inside inp.surface's window, which changed_box holds
 
     vpts, vnrm = gb.position[covered], gb.normal[covered]
     self_shadow, _ = shadow_lookup(smap, vpts, vnrm, tan_a, SELF_OFFSET_TEXELS * smap.texel, max_radius=MAX_RADIUS)
