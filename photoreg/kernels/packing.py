@@ -62,21 +62,23 @@ class Packed:
 
 
 def upload(arrays: list[np.ndarray], dtypes: list, device: str, pack: bool | None = None) -> list[wp.array]:
-    """Warp arrays on `device` of numpy `arrays` (each of its dtype's layout: (..., 3) float32 for wp.vec3), in one
-    copy on a GPU (each array cast and gathered into the staging buffer once, strided ones too); on the CPU they wrap
-    the numpy memory (made contiguous) without copying. `pack`: gather them into one buffer (None: on a GPU alone)."""
-    arrays, parts = [np.asarray(a) for a in arrays], []
+    """Warp arrays on `device` of numpy `arrays` (each of its dtype's layout: (..., 3) float32 for wp.vec3). Packed (on
+    a GPU by default): one copy, each array cast and gathered into the staging buffer once, strided ones too. Else one
+    by one, made contiguous first: on the CPU wrapping the numpy memory without copying, on a GPU one copy each (for
+    large arrays contiguous already, which packing would copy once more on the host)."""
+    arrays, parts, scalars = [np.asarray(a) for a in arrays], [], []
     for a, dt in zip(arrays, dtypes):
-        _, inner = _numpy_of(dt)
+        scalar, inner = _numpy_of(dt)
         if inner and a.shape[a.ndim - len(inner):] != inner:
             raise ValueError(f"upload: an array of {dt.__name__} must end in {inner}, got {a.shape}")
         parts.append((a.shape[:a.ndim - len(inner)], dt))
-    if not (pack if pack is not None else not wp.get_device(device).is_cpu):
-        return [wp.array(np.ascontiguousarray(a, dtype=_numpy_of(dt)[0]), dtype=dt, device=device, copy=False)
-                for a, dt in zip(arrays, dtypes)]
+        scalars.append(scalar)
+    on_cpu = wp.get_device(device).is_cpu
+    if not (pack if pack is not None else not on_cpu):
+        return [wp.array(np.ascontiguousarray(a, dtype=scalar), dtype=dt, device=device, copy=not on_cpu)
+                for a, dt, scalar in zip(arrays, dtypes, scalars)]
     offsets, size = _layout(parts)
     staging = np.empty(size, np.uint8)   # the padding between arrays is never read
-    for a, dt, off in zip(arrays, dtypes, offsets):
-        scalar = _numpy_of(dt)[0]
+    for a, scalar, off in zip(arrays, scalars, offsets):
         staging[off:off + a.size * np.dtype(scalar).itemsize].view(scalar).reshape(a.shape)[...] = a
     return _views(wp.array(staging, dtype=wp.uint8, device=device), parts, offsets)

@@ -28,7 +28,7 @@ import numpy as np
 from photoreg.device import init_warp
 from photoreg.io.images import SRGB_TO_LINEAR
 from photoreg.kernels.launch import launch_rows
-from photoreg.kernels.packing import Packed
+from photoreg.kernels.packing import Packed, upload
 from photoreg.types import Intrinsics
 
 wp = init_warp()
@@ -149,13 +149,12 @@ def sample_maps(colour: np.ndarray, usable: np.ndarray, depth: np.ndarray, intr:
         raise ValueError(f"sample_maps: a {box}-pixel box does not fit a {depth.shape[1]}x{depth.shape[0]} frame")
     rot = np.asarray(pose, dtype=np.float64)[:3, :3]
     # the frame's arrays one by one: contiguous already (packing them would copy 2.4 MB more on the host)
-    as_wp = dict(device=device, copy=False) if wp.get_device(device).is_cpu else dict(device=device)
+    colour_wp, codes_wp, depth_wp = upload([colour, codes, depth], [wp.vec3ub, wp.uint8, wp.float32], device,
+                                           pack=False)
     out = Packed([((h, w), wp.vec3), ((h, w), wp.uint8)], device)   # radiance, flags: one read-back
     launch_rows(_sample_maps, (h, w), device=device,
-                inputs=[wp.array(np.ascontiguousarray(colour, dtype=np.uint8), dtype=wp.vec3ub, **as_wp),
-                        _table(device), wp.array(codes, dtype=wp.uint8, **as_wp),
-                        wp.array(np.ascontiguousarray(depth, dtype=np.float32), dtype=wp.float32, **as_wp),
-                        maps.depth_wp, maps.normal_wp, wp.mat33d(*rot.T.ravel()), float(intr.fx), float(intr.fy),
+                inputs=[colour_wp, _table(device), codes_wp, depth_wp, maps.depth_wp, maps.normal_wp,
+                        wp.mat33d(*rot.T.ravel()), float(intr.fx), float(intr.fy),
                         float(intr.cx), float(intr.cy), st, box // 2, max(2, st),
                         math.cos(math.radians(max_angle_deg)), float(max_gap)],
                 outputs=out.arrays)
