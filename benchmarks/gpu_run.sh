@@ -47,6 +47,15 @@
 #              `photoreg bench speed $AB_FLAGS` alternating (the old first in odd rounds, this tree in even), AB_ROUNDS (default "1 2") rounds: RECORDING at stride 4 /
 #              64 rays / 3 bands and stride 1 / 169 / 4, the bunny (sessions/tum_fr1_rpy.toml) (OUTDIR/ab.json); AB_RUNS
 #              (comma-separated "KIND STRIDE RAYS BANDS", KIND bare, bunny or demo) picks other settings
+#   gbuffer    the objects' G-buffer ray-traced (render.gbuffer = raycast, --gbuffer) against pyrender's draw on EGL:
+#              composite_ab.py of the two on CUDA (TUM with the bunny, the demo's session, 8 frames each; into
+#              OUTDIR/gbuffer_composite_ab.jsonl), then `photoreg bench speed` of TUM with the bunny both ways,
+#              alternating, GBUFFER_ROUNDS (default "1 2") rounds, at stride 1 / 169 / 4 and 4 / 64 / 3, `--every 1000`
+#              (held) and `--async` (OUTDIR/gbuffer.json)
+#   gbcheck    the G-buffer tests of tests/test_render.py on this machine (pyrender on NVIDIA's EGL; the raycast kernel
+#              on the CPU and on CUDA; pytest's wheels carried in .carry/pytest), then benchmarks/gbuffer_check.py on TUM
+#              with the bunny and the demo's session, 8 frames each on CUDA (OUTDIR/gbuffer_check.jsonl, the frames
+#              differing most in OUTDIR/gbuffer_check_*.npz)
 #   sweep      `photoreg bench sweep --device cuda` on SWEEP_SCENES (recordings with lighting_gt.json
 #              made here with `photoreg synth`); VOXELS (default 0.01,0.02) restricts it to fit one call
 #   batch      benchmarks/batch_scale.sh: `photoreg batch` over the worker counts WORKERS (its other variables too;
@@ -250,6 +259,35 @@ for step in "$@"; do
         done
       done
       merge /tmp/rstride "$out/rstride.json" ;;
+    gbuffer)
+      for session in sessions/tum_fr1_rpy.toml data/demo/session.toml; do
+        python3 benchmarks/composite_ab.py . $session 0:8 cuda render.gbuffer=raycast 2>/dev/null \
+          | tee -a "$out/gbuffer_composite_ab.jsonl"
+      done
+      rm -rf /tmp/gbuffer; mkdir -p /tmp/gbuffer
+      for round in ${GBUFFER_ROUNDS:-1 2}; do
+        backends="pyrender raycast"; [ $((round % 2)) = 0 ] && backends="raycast pyrender"   # each first in turn
+        for mode in "held --every 1000" "async --async"; do
+          read -r tag flags <<< "$mode"
+          for run in "1 169 4" "4 64 3"; do
+            read -r stride rays bands <<< "$run"
+            for g in $backends; do
+              python3 -m photoreg bench speed sessions/tum_fr1_rpy.toml --device cuda --frames 0:30 --warmup 3 \
+                --stride $stride --rays $rays --bands $bands --gbuffer $g $flags \
+                --json "/tmp/gbuffer/${tag}_s${stride}_${g}_$round.json" 2>/dev/null
+            done
+          done
+        done
+      done
+      merge /tmp/gbuffer "$out/gbuffer.json" ;;
+    gbcheck)
+      [ -d .carry/pytest ] && python3 -m pip install -q --no-index --no-deps --target /tmp/site .carry/pytest/*.whl
+      python3 -m pytest -q -p no:cacheprovider tests/test_render.py -k "raycast or egl or window_holds" 2>&1 \
+        | tail -15 | tee "$out/gbuffer_pytest.txt" || true   # the checks below whatever the tests say
+      for session in sessions/tum_fr1_rpy.toml data/demo/session.toml; do
+        python3 benchmarks/gbuffer_check.py $session 0:8 cuda "$out/gbuffer_check_${session//\//_}.npz" \
+          2>/dev/null | tee -a "$out/gbuffer_check.jsonl"
+      done ;;
     sweep)
       # The CPU rows of benchmarks/speed_error.csv are kept: copy the merged table and plot back from OUTDIR.
       [ -f "$out/speed_error.csv" ] || cp benchmarks/speed_error.csv "$out/speed_error.csv"

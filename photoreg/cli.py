@@ -5,7 +5,7 @@ import argparse
 import importlib
 import sys
 
-from photoreg.config import SHADOW_RENDERERS
+from photoreg.config import GBUFFER_BACKENDS, SHADOW_RENDERERS
 
 # subcommand -> "module:function"; the function takes the parsed argparse.Namespace and returns an exit code.
 HANDLERS = {
@@ -44,6 +44,8 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--shadows", choices=SHADOW_RENDERERS, help="shadow renderer (overrides [render] shadows)")
     p.add_argument("--render-stride", type=int, help="sample the objects' shadows every n-th pixel, full resolution "
                                                      "along their silhouettes (render.stride, default 4)")
+    p.add_argument("--gbuffer", choices=GBUFFER_BACKENDS, help="the objects' G-buffer rasterised by pyrender or "
+                                                               "ray-traced by Warp (render.gbuffer, default pyrender)")
     p.add_argument("--video", action="store_true", help="also composite.mp4: the composites as a video "
                                                           "(sessions with [[objects]])")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -146,6 +148,8 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--bands", type=int, default=3)
     b.add_argument("--render-stride", type=int, help="sessions with objects: their shadows sampled every n-th pixel "
                                                      "(render.stride; default the session's)")
+    b.add_argument("--gbuffer", choices=GBUFFER_BACKENDS, help="sessions with objects: their G-buffer's backend "
+                                                               "(render.gbuffer; default the session's)")
     b.add_argument("--voxel-size", type=float)
     b.add_argument("--ray-length", type=float)
     b.add_argument("--every", type=int, default=1, help="estimate the lighting on every n-th frame (lighting.every)")

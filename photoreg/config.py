@@ -158,6 +158,7 @@ class RenderConfig:
     light_rays: int = 16          # voxel: rays over the dominant light's disc (sharp shadows); 0 = pure SH (paper)
     stride: int = 4               # the shadow ratio sampled every n-th pixel (full resolution along the objects'
                                   # silhouettes), whatever lighting.stride is
+    gbuffer: str = "pyrender"     # pyrender (rasterised, OpenGL) | raycast (Warp rays through the objects' BVH)
 
 
 @dataclass
@@ -181,6 +182,7 @@ class Session:
 
 
 SHADOW_RENDERERS = ("voxel", "shadowmap", "neural_soft", "neural_shadowmap", "none")  # [render] shadows
+GBUFFER_BACKENDS = ("pyrender", "raycast")   # [render] gbuffer
 
 _CHOICES = {
     ("recording", "format"): {"auto", "native", "tum", "redwood", "7scenes"},
@@ -193,6 +195,7 @@ _CHOICES = {
     ("lighting", "albedo_step"): {"alternate", "joint"},
     ("lighting", "select"): {"fixed", "gcv", "holdout", "aic", "bic"},
     ("render", "shadows"): set(SHADOW_RENDERERS),
+    ("render", "gbuffer"): set(GBUFFER_BACKENDS),
     ("", "device"): {"auto", "cpu", "cuda"},
 }
 

@@ -56,6 +56,11 @@ def test_session_overrides_and_bad_options(tmp_path):
     assert Path(s.recording.path) == (REPO / "data" / "demo").resolve()
     assert main(["run", str(REPO / "data" / "demo"), "--bands", "0", "--out", str(tmp_path)]) == 2
     assert main(["run", str(tmp_path / "missing"), "--out", str(tmp_path)]) == 2
+    bad = tmp_path / "bad.toml"
+    demo = (REPO / "data" / "demo" / "session.toml").read_text()
+    bad.write_text(demo.replace("[render]", '[render]\ngbuffer = "optix"'))
+    with pytest.raises(ValueError, match=r"render\.gbuffer.*raycast"):
+        load_session(bad)
 
 
 @pytest.mark.slow

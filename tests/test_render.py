@@ -12,6 +12,7 @@ import trimesh
 from scipy.spatial.transform import Rotation
 
 from photoreg.config import ObjectConfig
+from photoreg.device import init_warp
 from photoreg.kernels.raycast import raycast_surface
 from photoreg.kernels.transfer import VIRTUAL, any_blocked, make_direction_set, radiance_transfer, shaded_pass
 from photoreg.lighting import sh
@@ -140,6 +141,57 @@ def test_gbuffer_resolve_kernel_follows_its_definition(tmp_path):
         assert ref[0].max() > 0.99 and 0 < ((ref[0] > 0) & (ref[0] < 1)).sum()   # covered, edges anti-aliased
         for a, b in zip(got, ref):
             np.testing.assert_allclose(a, b, rtol=0, atol=1e-6)
+
+
+def _gbuffers_agree(a, b, pixels: int) -> None:
+    """Two G-buffers of one view agree: coverage in all but `pixels` pixels (by one subsample there), every layer at
+    the pixels both cover alike."""
+    d = np.abs(a.coverage - b.coverage)
+    assert (d > 0).sum() <= pixels and d.max() <= 1.0 / 4 + 1e-6, ((d > 0).sum(), d.max())
+    same = (d == 0) & (a.coverage > 0)
+    assert same.sum() > 0.95 * (a.coverage > 0).sum()
+    for name in ("depth", "position", "normal", "albedo"):
+        np.testing.assert_allclose(getattr(a, name)[same], getattr(b, name)[same], rtol=0, atol=1e-5, err_msg=name)
+
+
+@pytest.mark.parametrize("device", ["cpu", pytest.param("cuda", marks=pytest.mark.skipif(
+    not init_warp().is_cuda_available(), reason="no CUDA device here (runs on the GPU machine: gpu_run.sh gbcheck)"))])
+def test_raycast_gbuffer_is_the_draws(tmp_path, device):
+    """render.gbuffer = 'raycast' traces each subsample's ray through the faces' BVH instead of drawing: the draw's
+    G-buffer (coverage, anti-aliased edges, depth test against the real surface, attributes), windowed and whole, on
+    the rotated cube and sphere of the resolve's test, with the kernels on `device` (pyrender draws on OSMesa here, on
+    NVIDIA's EGL on a GPU machine); and pyrender's culling of back faces: an open quad turned away from the camera
+    hides nothing, in both."""
+    objs = [_cube(tmp_path, position=[0.05, 0.0, 2.0], scale=0.35, rotation=[20.0, 35.0, 10.0]),
+            ObjectConfig(mesh=str(_sphere(tmp_path)), position=[-0.15, 0.05, 2.4], scale=0.3, albedo=[0.2, 0.6, 0.3])]
+    quad = tmp_path / "quad.obj"                          # a square in z = 0 whose front faces +z
+    trimesh.Trimesh([[-1, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0]], [[0, 1, 2], [0, 2, 3]]).export(quad)
+    back = ObjectConfig(mesh=str(quad), position=[0.2, 0.0, 1.5], scale=0.1)   # the camera looks along +z: its back
+    pose = np.eye(4)
+    pose[:3, :3] = Rotation.from_euler("xyz", [2.0, -3.0, 1.0], degrees=True).as_matrix()
+    real = np.zeros((48, 64), np.float32)
+    real[:, :30] = 1.9                                    # a real wall cutting through the cube's left part
+    real[5:9, 40:44] = np.nan
+    scene = load_scene(objs + [back])
+    for s in (2, 3):
+        drawn, traced = GBufferRenderer(scene, INTR, s, device), GBufferRenderer(scene, INTR, s, device, "raycast")
+        assert not hasattr(traced, "gl")                  # no OpenGL at all
+        for window in (None, (10, 6, 55, 41)):
+            a, b = drawn.render(pose, real, 0.01, window), traced.render(pose, real, 0.01, window)
+            assert b.coverage.max() == 1 and ((b.coverage > 0) & (b.coverage < 1)).any()   # edges anti-aliased
+            assert (b.coverage[:, 30:] > 0).any() and not (b.coverage[:, :28] > 0).any()   # the wall hides the left
+            _gbuffers_agree(a, b, pixels=2)
+    alone = GBufferRenderer(load_scene(objs), INTR, 3, device, "raycast").render(pose, real, 0.01)
+    np.testing.assert_array_equal(alone.coverage, traced.render(pose, real, 0.01).coverage)   # the quad hides nothing
+    front = load_scene(objs + [ObjectConfig(mesh=str(quad), position=[0.2, 0.0, 1.5], scale=0.1,
+                                            rotation=[180.0, 0.0, 0.0])])   # turned: its front faces the camera
+    drawn, traced = GBufferRenderer(front, INTR, 2, device), GBufferRenderer(front, INTR, 2, device, "raycast")
+    a, b = drawn.render(pose, real), traced.render(pose, real)
+    nearest = b.depth == b.depth[b.depth > 0].min()
+    assert b.coverage.sum() > alone.coverage.sum() + 5 and np.allclose(b.normal[nearest], [0, 0, -1], atol=1e-6)
+    _gbuffers_agree(a, b, pixels=2)
+    with pytest.raises(ValueError, match="backend"):
+        GBufferRenderer(scene, INTR, 2, backend="optix")
 
 
 def test_gbuffer_viewport_holds_the_window(tmp_path):
@@ -392,6 +444,11 @@ def test_render_window_holds_the_object_and_its_seam(tmp_path):
     _check_window_gbuffer(stage, real, (x0, y0, x1, y1))
     with pytest.raises(ValueError, match="window"):
         stage.gbuffer.render(LOOK_DOWN, window=(0, 0, INTR.width + 1, 4))
+    s.render.gbuffer = "raycast"                                          # the session's G-buffer traced
+    traced = RenderStage(s, INTR, "cpu")
+    assert traced.gbuffer.backend == "raycast"
+    _check_window_gbuffer(traced, real, (x0, y0, x1, y1))
+    _gbuffers_agree(stage.gbuffer.render(LOOK_DOWN, real), traced.gbuffer.render(LOOK_DOWN, real), pixels=2)
     inside = LOOK_DOWN.copy()
     inside[2, 3] = 0.1                                                    # the camera within the cube's height
     assert stage.window(inside) == (0, 0, INTR.width, INTR.height)
@@ -475,7 +532,9 @@ def test_composite_blends_only_the_layers_region(tmp_path, shadows):
 
 def test_render_window_with_egl(tmp_path):
     """With EGL the G-buffer rasterises the window alone (its own viewport and principal point): the same
-    G-buffer, in a process whose pyrender runs on EGL (Mesa's here, NVIDIA's on a GPU machine)."""
+    G-buffer, in a process whose pyrender runs on EGL (Mesa's here, NVIDIA's on a GPU machine); and the draw's
+    framebuffer is single-sample there too, so the faces' codes are not blended along their shared edges: EGL's
+    G-buffer is the rays' (pyrender's 4x MSAA dropped the cube's top face and a quarter of TUM's bunny)."""
     import os
     import subprocess
     import sys
@@ -486,7 +545,8 @@ def test_render_window_with_egl(tmp_path):
             f"s = Session(); s.objects = [t._cube(Path({str(tmp_path)!r}), scale=0.2)]; s.lighting.stride = 4; "
             "st = RenderStage(s, t.INTR, 'cpu'); assert st.gbuffer.gl_windows; "
             "t._check_window_gbuffer(st, np.full((t.INTR.height, t.INTR.width), 0.9, np.float32), "
-            "st.window(t.LOOK_DOWN)); print('ok')")
+            f"st.window(t.LOOK_DOWN)); t.test_raycast_gbuffer_is_the_draws(Path({str(tmp_path)!r}), 'cpu'); "
+            "print('ok')")
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300,
                        env={**os.environ, "PYOPENGL_PLATFORM": "egl"}, cwd=REPO)
     assert r.returncode == 0 and r.stdout.strip().endswith("ok"), r.stderr[-2000:]

@@ -80,6 +80,7 @@ def bench_recording(session: Session, warmup: int = 2) -> dict:
         "sun_refine_every": L.sun_refine_every,
         "objects": len(session.objects), "shadows": session.render.shadows if session.objects else None,
         "render_stride": session.render.stride if session.objects else None,
+        "gbuffer": session.render.gbuffer if session.objects else None,
         "ms_mean": {s: round(float(np.mean([t.get(s, 0.0) for t in timings])), 3) for s in stages},
         "ms_p95": {s: round(float(np.percentile([t.get(s, 0.0) for t in timings], 95)), 3) for s in stages},
         "ms_median": {s: round(float(np.median([t.get(s, 0.0) for t in timings])), 3) for s in stages},
@@ -104,6 +105,8 @@ def speed_command(args) -> int:
     s.lighting.stride, s.lighting.rays, s.lighting.bands = args.stride, args.rays, args.bands
     if args.render_stride:
         s.render.stride = args.render_stride
+    if args.gbuffer:
+        s.render.gbuffer = args.gbuffer
     if args.voxel_size:
         s.reconstruction.voxel_size = args.voxel_size
     if args.ray_length:
@@ -120,7 +123,8 @@ def speed_command(args) -> int:
     validate(s)
     res = bench_recording(s, warmup=args.warmup)
     stages = "  ".join(f"{k} {v:.1f}" for k, v in res["ms_mean"].items())
-    render = (f", {res['objects']} object(s) inserted ({res['shadows']}, render stride {res['render_stride']})"
+    render = (f", {res['objects']} object(s) inserted ({res['shadows']}, render stride {res['render_stride']}, "
+              f"G-buffer {res['gbuffer']})"
               if res["objects"] else ", no objects")
     mode = (f" asynchronous ({res['estimates']} estimates, lighting {res['lag_frames_mean']} frames old on average, "
             f"solved in {'a child process' if res['solve_process'] else 'the worker thread'})"

@@ -2,10 +2,14 @@
 the supersampled draw. A subsample counts toward the pixel's coverage where the draw shows a face (depth buffer > 0)
 that the real surface does not hide (real depth > 0 and finite, and the face farther than it + tolerance); it gives
 the pixel its attributes where its flat colour decodes to a face index whose plane the subsample's ray meets at the
-depth buffer's z (within 2 mm + 0.2%: MSAA blends indices at edges), the last such subsample in row-major order
-winning. Plane hits in float64 (float32 out): the values of the numpy resolve it replaced, bit for bit (some forty
+depth buffer's z (within 2 mm + 0.2%: a code blended or rounded into another face's gives nothing; the draw is
+single-sample, photoreg.render.gbuffer._single_sample), the last such subsample in row-major order winning. Plane hits in float64 (float32 out): the values of the numpy resolve it replaced, bit for bit (some forty
 calls a frame; the G-buffer 0.4-1.7 ms faster a frame on an H100 and 4.5-6.3 -> 3.3-4.4 ms on the 2-core CPU, TUM
 with the bunny: benchmarks/gpu.md, "The G-buffer's resolve in one kernel").
+
+`trace` makes the same G-buffer without a draw: each subsample's ray meets the scene's faces in a Warp mesh (BVH), the
+nearest face that faces the camera (pyrender culls back faces) standing for the rasterised one; coverage, depth test
+and attributes as in the resolve, from that face's plane.
 """
 from __future__ import annotations
 
@@ -15,6 +19,19 @@ from photoreg.device import init_warp
 from photoreg.kernels.packing import Packed, upload
 
 wp = init_warp()
+
+
+@wp.func
+def _subsample_ray(u: int, v: int, fx: wp.float64, fy: wp.float64, cx: wp.float64, cy: wp.float64,
+                   rot: wp.mat33d) -> wp.vec3d:
+    """World direction of supersampled pixel (u, v)'s ray, camera z = 1 (camera-to-world rotation rot)."""
+    return rot * wp.vec3d((wp.float64(u) - cx) / fx, (wp.float64(v) - cy) / fy, wp.float64(1.0))
+
+
+@wp.func
+def _hidden(z: wp.float32, rd: wp.float32, tolerance: wp.float32) -> bool:
+    """Whether the real surface at depth rd (0 or non-finite: unknown) hides a virtual face at depth z."""
+    return rd > wp.float32(0.0) and wp.isfinite(rd) and z > rd + tolerance
 
 
 @wp.kernel
@@ -39,12 +56,11 @@ def _resolve(color: wp.array3d(dtype=wp.uint8), zbuf: wp.array2d(dtype=wp.float3
             u = j * s + b
             zb = zbuf[v, u]
             if zb > wp.float32(0.0):
-                if not (rd > wp.float32(0.0) and wp.isfinite(rd) and zb > rd + tolerance):
+                if not _hidden(zb, rd, tolerance):
                     hits += 1
                     f = (int(color[v, u, 0]) | (int(color[v, u, 1]) << 8) | (int(color[v, u, 2]) << 16)) - 1
                     if f >= 0 and f < faces:
-                        ray = rot * wp.vec3d((wp.float64(u + u0) - cx) / fx, (wp.float64(v + v0) - cy) / fy,
-                                             wp.float64(1.0))
+                        ray = _subsample_ray(u + u0, v + v0, fx, fy, cx, cy, rot)
                         nf = face_normal[f]
                         den = wp.dot(nf, ray)
                         if den != wp.float64(0.0):
@@ -65,14 +81,71 @@ def _resolve(color: wp.array3d(dtype=wp.uint8), zbuf: wp.array2d(dtype=wp.float3
     albedo[i, j] = a_out
 
 
-class Faces:
-    """A scene's faces on a device, for resolve: a point of each face's plane, its unit normal, its albedo."""
+BACK_FACES = 8   # back faces a subsample's ray may pass (culled, as pyrender draws) before it gives up
 
-    def __init__(self, p0: np.ndarray, normal: np.ndarray, albedo: np.ndarray, device: str):
+
+@wp.kernel
+def _trace(mesh: wp.uint64, real: wp.array2d(dtype=wp.float32), s: int, u0: int, v0: int, fx: wp.float64,
+           fy: wp.float64, cx: wp.float64, cy: wp.float64, rot: wp.mat33d, t: wp.vec3d, near: wp.float64,
+           far: wp.float64, p0: wp.array(dtype=wp.vec3d), face_normal: wp.array(dtype=wp.vec3d),
+           face_albedo: wp.array(dtype=wp.vec3), tolerance: wp.float32,
+           coverage: wp.array2d(dtype=wp.float32), depth: wp.array2d(dtype=wp.float32),
+           position: wp.array2d(dtype=wp.vec3), normal: wp.array2d(dtype=wp.vec3), albedo: wp.array2d(dtype=wp.vec3)):
+    i, j = wp.tid()
+    hits = int(0)
+    z_out = wp.float32(0.0)
+    p_out = wp.vec3(0.0, 0.0, 0.0)
+    n_out = wp.vec3(0.0, 0.0, 0.0)
+    a_out = wp.vec3(0.0, 0.0, 0.0)
+    rd = real[i, j]
+    for a in range(s):
+        for b in range(s):
+            ray = _subsample_ray(j * s + b + u0, i * s + a + v0, fx, fy, cx, cy, rot)
+            length = wp.length(ray)
+            d = wp.vec3(ray / length)
+            start = wp.vec3(t + ray * near)           # from the near plane, as the draw clips
+            reach = wp.float32((far - near) * length)
+            for k in range(BACK_FACES):
+                q = wp.mesh_query_ray(mesh, start, d, reach)
+                if not q.result:
+                    break
+                nf = face_normal[q.face]
+                den = wp.dot(nf, ray)
+                if den < wp.float64(0.0):   # the front of the face: the draw's nearest fragment
+                    z = wp.dot(nf, p0[q.face] - t) / den
+                    if wp.isfinite(z) and not _hidden(wp.float32(z), rd, tolerance):
+                        hits += 1
+                        z_out = wp.float32(z)
+                        p_out = wp.vec3(t + ray * z)
+                        n_out = wp.vec3(nf)
+                        a_out = face_albedo[q.face]
+                    break
+                step = q.t + wp.float32(1e-5)        # a back face: culled, the ray goes on past it
+                start = start + d * step
+                reach = reach - step
+    coverage[i, j] = wp.float32(hits) / wp.float32(s * s)
+    depth[i, j] = z_out
+    position[i, j] = p_out
+    normal[i, j] = n_out
+    albedo[i, j] = a_out
+
+
+class Faces:
+    """A scene's faces on a device, for resolve and trace: a point of each face's plane, its unit normal (the
+    triangle's winding: counter-clockwise seen from the front), its albedo; with `triangles` (F, 3, 3) also their
+    Warp mesh (trace's)."""
+
+    def __init__(self, p0: np.ndarray, normal: np.ndarray, albedo: np.ndarray, device: str,
+                 triangles: np.ndarray | None = None):
         self.device = device
         self.p0 = wp.array(np.asarray(p0, np.float64), dtype=wp.vec3d, device=device)
         self.normal = wp.array(np.asarray(normal, np.float64), dtype=wp.vec3d, device=device)
         self.albedo = wp.array(np.asarray(albedo, np.float32), dtype=wp.vec3, device=device)
+        self.mesh = None
+        if triangles is not None:
+            points = wp.array(np.asarray(triangles, np.float32).reshape(-1, 3), dtype=wp.vec3, device=device)
+            self.mesh = wp.Mesh(points=points, indices=wp.array(np.arange(points.shape[0], dtype=np.int32),
+                                                                 dtype=wp.int32, device=device))
 
 
 def resolve(color: np.ndarray, zbuf: np.ndarray, real: np.ndarray, s: int, origin: tuple[int, int],
@@ -88,6 +161,28 @@ def resolve(color: np.ndarray, zbuf: np.ndarray, real: np.ndarray, s: int, origi
               inputs=[*upload([color, zbuf, real], [wp.uint8, wp.float32, wp.float32], dev),
                       int(s), int(origin[0]), int(origin[1]), float(intr_hi.fx), float(intr_hi.fy), float(intr_hi.cx),
                       float(intr_hi.cy), wp.mat33d(*pose[:3, :3].ravel()), wp.vec3d(*pose[:3, 3]), faces.p0,
+                      faces.normal, faces.albedo, float(np.float32(tolerance))],
+              outputs=out.arrays)
+    return tuple(out.numpy())
+
+
+def trace(real: np.ndarray, s: int, origin: tuple[int, int], intr_hi, pose: np.ndarray, faces: Faces,
+          tolerance: float, near: float, far: float) -> tuple[np.ndarray, ...]:
+    """(coverage, depth, position, normal, albedo) of a window of h x w pixels as resolve gives them, from rays instead
+    of a draw: `real` (h, w) float32 real depth (0: unknown), the window's supersampled top-left pixel `origin`
+    (u0, v0), the supersampled intrinsics `intr_hi`, camera-to-world `pose`, faces made with their triangles, the
+    draw's clipping planes `near`, `far` (camera z, metres)."""
+    if faces.mesh is None:
+        raise ValueError("gbuffer.trace: the Faces were made without their triangles (no mesh to trace)")
+    h, w = real.shape
+    dev = faces.device
+    out = Packed([((h, w), wp.float32)] * 2 + [((h, w), wp.vec3)] * 3, dev)
+    pose = np.asarray(pose, np.float64)
+    (real_dev,) = upload([real], [wp.float32], dev, pack=False)
+    wp.launch(_trace, dim=(h, w), device=dev,
+              inputs=[faces.mesh.id, real_dev, int(s), int(origin[0]), int(origin[1]), float(intr_hi.fx),
+                      float(intr_hi.fy), float(intr_hi.cx), float(intr_hi.cy),
+                      wp.mat33d(*pose[:3, :3].ravel()), wp.vec3d(*pose[:3, 3]), float(near), float(far), faces.p0,
                       faces.normal, faces.albedo, float(np.float32(tolerance))],
               outputs=out.arrays)
     return tuple(out.numpy())

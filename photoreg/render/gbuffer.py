@@ -1,4 +1,4 @@
-"""Virtual G-buffer (albedo, depth, world position and normal, coverage) rasterised with pyrender.
+"""Virtual G-buffer (albedo, depth, world position and normal, coverage), rasterised with pyrender or ray-traced.
 
 Offscreen through OSMesa (CPU) or EGL (GPU): PYOPENGL_PLATFORM is set to 'egl' when unset and an NVIDIA
 device is present, else 'osmesa'. The view renders at `supersample` times the camera's resolution with
@@ -13,6 +13,10 @@ every G-buffer renderer of the process (_offscreen), and every OpenGL call of th
 (_on_gl): a GL context is current in one thread at a time, and pyrender's EGL platform asserts that making its
 context current succeeds, which fails while another thread holds it (pipelines in several threads: the server's
 connections with `--threads`).
+
+The `raycast` backend (render.gbuffer) makes the same layers with no draw and no OpenGL: each subsample's ray meets the
+faces in a Warp mesh on the renderer's device (photoreg.kernels.gbuffer.trace); the edges' coverage then comes from the
+subsamples' exact rays instead of the rasteriser's rules and MSAA.
 """
 from __future__ import annotations
 
@@ -24,8 +28,9 @@ from pathlib import Path
 
 import numpy as np
 
+from photoreg.config import GBUFFER_BACKENDS
 from photoreg.io.poses import check_pose
-from photoreg.kernels.gbuffer import Faces, resolve
+from photoreg.kernels.gbuffer import Faces, resolve, trace
 from photoreg.render.scene import VirtualScene
 from photoreg.types import Intrinsics
 
@@ -122,6 +127,28 @@ class _ContextPrograms:
         self._cache.clear()
 
 
+def _single_sample(renderer) -> None:
+    """Makes a pyrender Renderer draw offscreen into single-sample buffers. With framebuffer objects (EGL) it draws
+    into 4x multisampled ones and blits them with GL_LINEAR, which averages the codes of neighbouring faces along
+    their shared edges into the code of neither: the resolve drops those pixels (a quarter of TUM's bunny on an H200,
+    the cube's top face on Mesa's EGL; OSMesa, without framebuffer objects, never did). The swap of pyrender's
+    glRenderbufferStorageMultisample lasts one call on the GL thread, where every pyrender call runs."""
+    import pyrender.renderer as module
+
+    configure = renderer._configure_main_framebuffer
+
+    def single() -> None:
+        multisample = module.glRenderbufferStorageMultisample
+        module.glRenderbufferStorageMultisample = lambda target, samples, fmt, w, h: module.glRenderbufferStorage(
+            target, fmt, w, h)
+        try:
+            configure()
+        finally:
+            module.glRenderbufferStorageMultisample = multisample
+
+    renderer._configure_main_framebuffer = single
+
+
 def _offscreen(pr, width: int, height: int) -> tuple[object, bool]:
     """The process's offscreen renderer of this size and whether it may change its viewport, made once (on the GL
     thread) and never deleted: pyrender's EGL platform terminates the display, which every renderer of a process
@@ -131,6 +158,7 @@ def _offscreen(pr, width: int, height: int) -> tuple[object, bool]:
     if (width, height) not in _OFFSCREEN:
         gl = pr.OffscreenRenderer(width, height)
         gl._renderer._program_cache = _ContextPrograms(gl._renderer._program_cache)
+        _single_sample(gl._renderer)
         _OFFSCREEN[(width, height)] = (gl, os.environ.get("PYOPENGL_PLATFORM") == "egl")
     return _OFFSCREEN[(width, height)]
 
@@ -144,13 +172,16 @@ def _pow2(n: int) -> int:
 
 
 class GBufferRenderer:
-    """Rasterises one virtual scene for one camera model; keeps its GL context across frames. `device`: where the
-    draw is resolved (the pipeline's)."""
+    """Rasterises (backend 'pyrender': keeps its GL context across frames) or ray-traces ('raycast') one virtual
+    scene for one camera model. `device`: where the draw is resolved or the rays traced (the pipeline's)."""
 
-    def __init__(self, scene: VirtualScene, intr: Intrinsics, supersample: int = 2, device: str = "cpu"):
+    def __init__(self, scene: VirtualScene, intr: Intrinsics, supersample: int = 2, device: str = "cpu",
+                 backend: str = "pyrender"):
         if supersample < 1:
             raise ValueError(f"GBufferRenderer: supersample must be >= 1, got {supersample}")
-        self.pr = _import_pyrender()
+        if backend not in GBUFFER_BACKENDS:
+            raise ValueError(f"GBufferRenderer: backend must be one of {GBUFFER_BACKENDS}, got {backend!r}")
+        self.backend = backend
         self.intr, self.s = intr.check("GBufferRenderer"), int(supersample)
         self.hi = intr.scaled(self.s)
         verts, faces, owner = scene.triangles()
@@ -159,7 +190,11 @@ class GBufferRenderer:
         length = np.linalg.norm(n, axis=1, keepdims=True)
         keep = length[:, 0] > 0                                       # degenerate faces cannot be hit
         albedo = np.stack([o.albedo for o in scene.objects])[owner[keep]]
-        self.faces = Faces(tri[keep, 0], n[keep] / length[keep], albedo, device)   # the resolve's, on its device
+        self.faces = Faces(tri[keep, 0], n[keep] / length[keep], albedo, device,   # on the resolve's device
+                           tri[keep] if backend == "raycast" else None)
+        if backend == "raycast":
+            return
+        self.pr = _import_pyrender()
         ids = np.arange(1, keep.sum() + 1)
         code = np.stack([ids & 255, (ids >> 8) & 255, (ids >> 16) & 255, np.full_like(ids, 255)], -1)
         self._triangles = tri[keep].reshape(-1, 3).astype(np.float32), np.repeat(code.astype(np.float32) / 255.0, 3, 0)
@@ -227,9 +262,13 @@ class GBufferRenderer:
             empty = np.zeros((h, w, 3), np.float32)
             return GBuffer(np.zeros((H, W), np.float32), (x0, y0, x1, y1), np.zeros((h, w), np.float32), empty,
                            empty.copy(), empty.copy())
-        color, zbuf = _on_gl(self._draw, pose, self.viewport(w, h), x0 * s, y0 * s).result()
-        cover, depth, position, normal, albedo = resolve(color[:h * s, :w * s, :3], zbuf[:h * s, :w * s], real, s,
-                                                         (x0 * s, y0 * s), self.hi, pose, self.faces, tolerance)
+        if self.backend == "raycast":
+            cover, depth, position, normal, albedo = trace(real, s, (x0 * s, y0 * s), self.hi, pose, self.faces,
+                                                           tolerance, Z_NEAR, Z_FAR)
+        else:
+            color, zbuf = _on_gl(self._draw, pose, self.viewport(w, h), x0 * s, y0 * s).result()
+            cover, depth, position, normal, albedo = resolve(color[:h * s, :w * s, :3], zbuf[:h * s, :w * s], real,
+                                                             s, (x0 * s, y0 * s), self.hi, pose, self.faces, tolerance)
         coverage = np.zeros((H, W), np.float32)
         coverage[y0:y1, x0:x1] = cover
         return GBuffer(coverage, (x0, y0, x1, y1), depth, position, normal, albedo)

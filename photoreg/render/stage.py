@@ -29,7 +29,7 @@ class RenderStage:
         self.renderer = get_renderer(session.render.shadows)
         self.scene = load_scene(session.objects)
         self.virtual = voxel_grid(self.scene, session.reconstruction.voxel_size, device)
-        self.gbuffer = GBufferRenderer(self.scene, intrinsics, SUPERSAMPLE, device)
+        self.gbuffer = GBufferRenderer(self.scene, intrinsics, SUPERSAMPLE, device, session.render.gbuffer)
         lo, hi = self.scene.bounds   # the objects' box's corners (window)
         self._corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
         self._dirs: dict[int, tuple[np.ndarray, np.ndarray]] = {}
