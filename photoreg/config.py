@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import dataclasses
 import sys
+import types
 import typing
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -149,7 +150,10 @@ class ObjectConfig:
     position: list = field(default_factory=lambda: [0.0, 0.0, 0.0])
     rotation: list = field(default_factory=lambda: [0.0, 0.0, 0.0])  # degrees, scipy 'xyz'
     scale: float = 1.0
-    albedo: list = field(default_factory=lambda: [0.8, 0.8, 0.8])    # linear RGB
+    albedo: list | str = field(default_factory=lambda: [0.8, 0.8, 0.8])   # linear RGB, or "texture" (the mesh's)
+
+
+ALBEDO_TEXTURE = "texture"   # objects.albedo: the mesh's base-colour texture instead of one colour
 
 
 @dataclass
@@ -202,6 +206,14 @@ _CHOICES = {
 
 def _check_value(where: str, name: str, value, typ):
     origin = typing.get_origin(typ)
+    if origin in (typing.Union, types.UnionType):   # X | Y: the first that takes the value
+        for member in typing.get_args(typ):
+            try:
+                return _check_value(where, name, value, member)
+            except ValueError:
+                pass
+        names = " or ".join(getattr(m, "__name__", str(m)) for m in typing.get_args(typ))
+        raise ValueError(f"{where}: key '{name}' must be {names}, got {value!r}")
     if typ is float and isinstance(value, (int, float)) and not isinstance(value, bool):
         return float(value)
     if typ is list or origin is list:
@@ -236,6 +248,10 @@ def _check_object(obj: ObjectConfig, where: str) -> None:
 
     for key, n in (("position", 3), ("rotation", 3), ("albedo", 3)):
         v = getattr(obj, key)
+        if key == "albedo" and isinstance(v, str):
+            if v != ALBEDO_TEXTURE:
+                raise ValueError(f"{where}: objects.albedo must be 3 finite numbers or {ALBEDO_TEXTURE!r}, got {v!r}")
+            continue
         if len(v) != n or not all(isinstance(x, (int, float)) and np.isfinite(x) for x in v):
             raise ValueError(f"{where}: objects.{key} must be {n} finite numbers, got {v!r}")
     if not (np.isfinite(obj.scale) and obj.scale > 0):

@@ -4,6 +4,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import multiprocessing
+import re
 from pathlib import Path
 
 import cv2
@@ -57,10 +58,20 @@ def test_session_overrides_and_bad_options(tmp_path):
     assert main(["run", str(REPO / "data" / "demo"), "--bands", "0", "--out", str(tmp_path)]) == 2
     assert main(["run", str(tmp_path / "missing"), "--out", str(tmp_path)]) == 2
     bad = tmp_path / "bad.toml"
-    demo = (REPO / "data" / "demo" / "session.toml").read_text()
+    where = REPO / "data" / "demo"                                    # its paths made absolute: bad.toml is elsewhere
+    demo = (where / "session.toml").read_text().replace('path = "."', f'path = "{where}"').replace(
+        'mesh = "object.obj"', f'mesh = "{where / "object.obj"}"')
     bad.write_text(demo.replace("[render]", '[render]\ngbuffer = "optix"'))
     with pytest.raises(ValueError, match=r"render\.gbuffer.*raycast"):
         load_session(bad)
+    albedo = re.search(r"^albedo = .*$", demo, re.M).group(0)          # the object's: a colour, "texture" or an error
+    bad.write_text(demo.replace(albedo, 'albedo = "texture"'))
+    assert load_session(bad).objects[0].albedo == "texture"
+    for value, message in (('"wood"', r"objects\.albedo must be 3 finite numbers or 'texture'"),
+                           ("3", r"objects\.albedo' must be list or str")):
+        bad.write_text(demo.replace(albedo, f"albedo = {value}"))
+        with pytest.raises(ValueError, match=message):
+            load_session(bad)
 
 
 @pytest.mark.slow

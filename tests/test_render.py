@@ -25,6 +25,8 @@ from photoreg.types import Intrinsics
 REPO = Path(__file__).resolve().parents[1]
 INTR = Intrinsics(64, 48, 50.0, 50.0, 31.5, 23.5)
 LOOK_DOWN = np.array([[1.0, 0, 0, 0], [0, -1, 0, 0], [0, 0, -1, 1.0], [0, 0, 0, 1]])  # camera at z=1 facing -z
+DEVICES = ["cpu", pytest.param("cuda", marks=pytest.mark.skipif(   # the G-buffer kernels' devices
+    not init_warp().is_cuda_available(), reason="no CUDA device here (runs on the GPU machine: gpu_run.sh gbcheck)"))]
 
 
 def _cube(tmp_path, **kw) -> ObjectConfig:
@@ -154,8 +156,7 @@ def _gbuffers_agree(a, b, pixels: int) -> None:
         np.testing.assert_allclose(getattr(a, name)[same], getattr(b, name)[same], rtol=0, atol=1e-5, err_msg=name)
 
 
-@pytest.mark.parametrize("device", ["cpu", pytest.param("cuda", marks=pytest.mark.skipif(
-    not init_warp().is_cuda_available(), reason="no CUDA device here (runs on the GPU machine: gpu_run.sh gbcheck)"))])
+@pytest.mark.parametrize("device", DEVICES)
 def test_raycast_gbuffer_is_the_draws(tmp_path, device):
     """render.gbuffer = 'raycast' traces each subsample's ray through the faces' BVH instead of drawing: the draw's
     G-buffer (coverage, anti-aliased edges, depth test against the real surface, attributes), windowed and whole, on
@@ -192,6 +193,68 @@ def test_raycast_gbuffer_is_the_draws(tmp_path, device):
     _gbuffers_agree(a, b, pixels=2)
     with pytest.raises(ValueError, match="backend"):
         GBufferRenderer(scene, INTR, 2, backend="optix")
+
+
+def _textured_quad(path: Path, texture: np.ndarray, material=None) -> Path:
+    """The square [-1, 1]^2 in z = 0, its front facing +z, texture coordinates (x + 1) / 2, (y + 1) / 2, exported
+    with `texture` (8-bit RGB) through trimesh (OBJ: an .mtl and a PNG beside it; GLB: embedded)."""
+    from PIL import Image
+
+    image = Image.fromarray(texture)
+    visual = trimesh.visual.TextureVisuals(uv=[[0, 0], [1, 0], [1, 1], [0, 1]], image=image, material=material)
+    trimesh.Trimesh([[-1, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0]], [[0, 1, 2], [0, 2, 3]], visual=visual,
+                    process=False).export(path)
+    return path
+
+
+@pytest.mark.parametrize("device", DEVICES)
+@pytest.mark.parametrize("backend", ["pyrender", "raycast"])
+def test_gbuffer_albedo_from_the_mesh_texture(tmp_path, backend, device):
+    """objects.albedo = "texture": a pixel's albedo is the mesh's base-colour texture at its point's texture
+    coordinates, decoded from sRGB, bilinear between texel centres; checked against trimesh's own lookup
+    (visual.color.uv_to_color, nearest texel) where the two agree (inside 2 x 2 blocks of equal texels), for an OBJ and
+    for a GLB whose baseColorFactor scales the texture; a glTF material without an image gives its baseColorFactor;
+    an object with neither (an OBJ with texture coordinates and no material among them) is a clear error."""
+    from PIL import Image
+
+    from photoreg.io.images import srgb_to_linear
+
+    rng = np.random.default_rng(3)
+    texture = np.kron(rng.integers(0, 256, (4, 4, 3)), np.ones((2, 2, 1))).astype(np.uint8)   # 8 x 8 texels
+    factor = np.array([255, 128, 255, 255], np.uint8)
+    glb = trimesh.visual.material.PBRMaterial(baseColorTexture=Image.fromarray(texture), baseColorFactor=factor)
+    scale = 0.4
+    v, u = np.mgrid[0:INTR.height, 0:INTR.width]
+    local = np.stack([(u - INTR.cx) / INTR.fx, -(v - INTR.cy) / INTR.fy], -1) / scale   # LOOK_DOWN's hit on z = 0
+    uv = ((local + 1) / 2).reshape(-1, 2)
+    x, y = uv[:, 0] * 8 - 0.5, (1 - uv[:, 1]) * 8 - 0.5                             # texel coordinates
+    exact = ((x % 2 >= 0.05) & (x % 2 <= 0.95) & (y % 2 >= 0.05) & (y % 2 <= 0.95)   # between a block's centres
+             & (uv.min(1) > 0) & (uv.max(1) < 1)).reshape(INTR.height, INTR.width)
+    looked_up = trimesh.visual.color.uv_to_color(np.clip(uv, 0, 1), Image.fromarray(texture))   # (trimesh 4.5: no wrap)
+    want = srgb_to_linear(looked_up[:, :3].astype(np.uint8).reshape(INTR.height, INTR.width, 3))
+    for mesh, gain in ((_textured_quad(tmp_path / "quad.obj", texture), 1.0),
+                       (_textured_quad(tmp_path / "quad.glb", texture, glb), factor[:3] / 255.0)):
+        scene = load_scene([ObjectConfig(mesh=str(mesh), scale=scale, albedo="texture")])
+        gb = GBufferRenderer(scene, INTR, 2, device, backend).render(LOOK_DOWN)
+        inside = exact & (gb.coverage == 1)
+        assert inside.sum() > 150, inside.sum()
+        np.testing.assert_allclose(gb.albedo[inside], (want * gain)[inside], rtol=0, atol=1e-5, err_msg=str(mesh))
+        assert np.ptp(gb.albedo[gb.coverage == 1], axis=0).min() > 0.2                 # a texture, not one colour
+        assert np.allclose(scene.objects[0].albedo, srgb_to_linear(texture).mean((0, 1)) * gain, atol=1e-5)
+    colour = trimesh.visual.material.PBRMaterial(baseColorFactor=[255, 51, 0, 255])   # a glTF colour, no image
+    flat = ObjectConfig(mesh=str(_textured_quad(tmp_path / "flat.glb", texture, colour)), scale=scale, albedo="texture")
+    gb = GBufferRenderer(load_scene([flat]), INTR, 2, device, backend).render(LOOK_DOWN)
+    assert (gb.coverage > 0).sum() > 200 and np.allclose(gb.albedo[gb.coverage > 0], [1.0, 0.2, 0.0], atol=1e-6)
+    plain = tmp_path / "plain.obj"
+    trimesh.creation.box().export(plain)
+    bare = tmp_path / "bare.obj"                                   # texture coordinates, no material library
+    bare.write_text("".join(line for line in (tmp_path / "quad.obj").read_text().splitlines(True)
+                            if not line.startswith(("mtllib", "usemtl"))))
+    for mesh in (plain, bare):
+        with pytest.raises(ValueError, match=f"{mesh.name}.*no texture image or base colour"):
+            load_scene([ObjectConfig(mesh=str(mesh), albedo="texture")])
+    with pytest.raises(ValueError, match="albedo"):
+        load_scene([ObjectConfig(mesh=str(plain), albedo="wood")])
 
 
 def test_gbuffer_viewport_holds_the_window(tmp_path):
@@ -328,11 +391,12 @@ def test_shaded_pass_is_the_lighting_times_the_transfer(tmp_path):
             shaded_pass(floor, virt, pts, normals, dirs, bad, 0.03, 0.3)
 
 
-def _render_floor(tmp_path, shadows: str, stride: int = 2, surface: bool = False, window: bool = False):
-    """A cube on the real floor seen from above, lit from above: (camera, composite, layers, gbuffer); with
+def _render_floor(tmp_path, shadows: str, stride: int = 2, surface: bool = False, window: bool = False,
+                  obj: ObjectConfig | None = None):
+    """A cube (or `obj`) on the real floor seen from above, lit from above: (camera, composite, layers, gbuffer); with
     `surface` the full-resolution real surface goes in too (composite.refine_seam); with `window` the G-buffer is
     drawn in the cube's box widened by stride + 1 pixels (as RenderStage.window), else in the whole frame."""
-    scene = load_scene([_cube(tmp_path, scale=0.2, albedo=[0.5, 0.5, 0.5])])
+    scene = load_scene([obj or _cube(tmp_path, scale=0.2, albedo=[0.5, 0.5, 0.5])])
     floor, virt = _floor_grid(), voxel_grid(scene, 0.02, "cpu")
     maps = raycast_surface(floor, INTR, LOOK_DOWN, 0.1, 3.0, stride=stride)
     full = raycast_surface(floor, INTR, LOOK_DOWN, 0.1, 3.0)
@@ -550,6 +614,23 @@ def test_render_window_with_egl(tmp_path):
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300,
                        env={**os.environ, "PYOPENGL_PLATFORM": "egl"}, cwd=REPO)
     assert r.returncode == 0 and r.stdout.strip().endswith("ok"), r.stderr[-2000:]
+
+
+def test_textured_object_composites_its_texture(tmp_path):
+    """A textured cube on the floor (its top face's texture coordinates its x and y): the composite of its top face,
+    lit alike everywhere, is the texture's albedo times one shading, whatever the texel."""
+    from PIL import Image
+
+    box = trimesh.creation.box(extents=(1, 1, 1))
+    texture = np.kron(np.random.default_rng(5).integers(30, 256, (4, 4, 3)), np.ones((4, 4, 1))).astype(np.uint8)
+    box.visual = trimesh.visual.TextureVisuals(uv=box.vertices[:, :2] + 0.5, image=Image.fromarray(texture))
+    box.export(tmp_path / "box.obj")
+    obj = ObjectConfig(mesh=str(tmp_path / "box.obj"), position=[0.0, 0.0, 0.1], scale=0.2, albedo="texture")
+    camera, out, layers, gb = _render_floor(tmp_path, "voxel", obj=obj)
+    top = cv2.erode((gb.coverage == 1).astype(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)
+    assert top.sum() > 30 and np.ptp(gb.albedo[top], axis=0).min() > 0.2   # several texels of other colours
+    shading = out[top] / gb.albedo[top]
+    assert np.all(np.isfinite(out)) and np.ptp(shading, axis=0).max() < 0.02 * shading.mean(), np.ptp(shading, 0)
 
 
 def test_none_renderer_leaves_real_pixels(tmp_path):

@@ -3,13 +3,17 @@ the supersampled draw. A subsample counts toward the pixel's coverage where the 
 that the real surface does not hide (real depth > 0 and finite, and the face farther than it + tolerance); it gives
 the pixel its attributes where its flat colour decodes to a face index whose plane the subsample's ray meets at the
 depth buffer's z (within 2 mm + 0.2%: a code blended or rounded into another face's gives nothing; the draw is
-single-sample, photoreg.render.gbuffer._single_sample), the last such subsample in row-major order winning. Plane hits in float64 (float32 out): the values of the numpy resolve it replaced, bit for bit (some forty
-calls a frame; the G-buffer 0.4-1.7 ms faster a frame on an H100 and 4.5-6.3 -> 3.3-4.4 ms on the 2-core CPU, TUM
-with the bunny: benchmarks/gpu.md, "The G-buffer's resolve in one kernel").
+single-sample, photoreg.render.gbuffer._single_sample), the last such subsample in row-major order winning. Plane
+hits in float64 (float32 out): the values of the numpy resolve it replaced, bit for bit (some forty calls a frame; the
+G-buffer 0.4-1.7 ms faster a frame on an H100 and 4.5-6.3 -> 3.3-4.4 ms on the 2-core CPU, TUM with the bunny:
+benchmarks/gpu.md, "The G-buffer's resolve in one kernel").
 
 `trace` makes the same G-buffer without a draw: each subsample's ray meets the scene's faces in a Warp mesh (BVH), the
 nearest face that faces the camera (pyrender culls back faces) standing for the rasterised one; coverage, depth test
 and attributes as in the resolve, from that face's plane.
+
+Both name each pixel's face; where it is textured (objects.albedo = "texture") `Textures.apply` replaces the face's
+one albedo with the texture's bilinear lookup at the pixel's point, on the device before the one read-back.
 """
 from __future__ import annotations
 
@@ -40,10 +44,12 @@ def _resolve(color: wp.array3d(dtype=wp.uint8), zbuf: wp.array2d(dtype=wp.float3
              t: wp.vec3d, p0: wp.array(dtype=wp.vec3d), face_normal: wp.array(dtype=wp.vec3d),
              face_albedo: wp.array(dtype=wp.vec3), tolerance: wp.float32,
              coverage: wp.array2d(dtype=wp.float32), depth: wp.array2d(dtype=wp.float32),
-             position: wp.array2d(dtype=wp.vec3), normal: wp.array2d(dtype=wp.vec3), albedo: wp.array2d(dtype=wp.vec3)):
+             position: wp.array2d(dtype=wp.vec3), normal: wp.array2d(dtype=wp.vec3), albedo: wp.array2d(dtype=wp.vec3),
+             face: wp.array2d(dtype=wp.int32)):
     i, j = wp.tid()
     hits = int(0)
     shown = int(0)
+    f_out = int(-1)
     z_out = wp.float32(0.0)
     p_out = wp.vec3(0.0, 0.0, 0.0)
     n_out = wp.vec3(0.0, 0.0, 0.0)
@@ -72,6 +78,7 @@ def _resolve(color: wp.array3d(dtype=wp.uint8), zbuf: wp.array2d(dtype=wp.float3
                                 p_out = wp.vec3(t + ray * z)
                                 n_out = wp.vec3(nf * (-wp.sign(den)))
                                 a_out = face_albedo[f]
+                                f_out = f
     coverage[i, j] = wp.float32(0.0)
     if shown == 1:
         coverage[i, j] = wp.float32(hits) / wp.float32(s * s)
@@ -79,6 +86,7 @@ def _resolve(color: wp.array3d(dtype=wp.uint8), zbuf: wp.array2d(dtype=wp.float3
     position[i, j] = p_out
     normal[i, j] = n_out
     albedo[i, j] = a_out
+    face[i, j] = wp.int32(f_out)
 
 
 BACK_FACES = 8   # back faces a subsample's ray may pass (culled, as pyrender draws) before it gives up
@@ -90,9 +98,11 @@ def _trace(mesh: wp.uint64, real: wp.array2d(dtype=wp.float32), s: int, u0: int,
            far: wp.float64, p0: wp.array(dtype=wp.vec3d), face_normal: wp.array(dtype=wp.vec3d),
            face_albedo: wp.array(dtype=wp.vec3), tolerance: wp.float32,
            coverage: wp.array2d(dtype=wp.float32), depth: wp.array2d(dtype=wp.float32),
-           position: wp.array2d(dtype=wp.vec3), normal: wp.array2d(dtype=wp.vec3), albedo: wp.array2d(dtype=wp.vec3)):
+           position: wp.array2d(dtype=wp.vec3), normal: wp.array2d(dtype=wp.vec3), albedo: wp.array2d(dtype=wp.vec3),
+           face: wp.array2d(dtype=wp.int32)):
     i, j = wp.tid()
     hits = int(0)
+    f_out = int(-1)
     z_out = wp.float32(0.0)
     p_out = wp.vec3(0.0, 0.0, 0.0)
     n_out = wp.vec3(0.0, 0.0, 0.0)
@@ -119,6 +129,7 @@ def _trace(mesh: wp.uint64, real: wp.array2d(dtype=wp.float32), s: int, u0: int,
                         p_out = wp.vec3(t + ray * z)
                         n_out = wp.vec3(nf)
                         a_out = face_albedo[q.face]
+                        f_out = q.face
                     break
                 step = q.t + wp.float32(1e-5)        # a back face: culled, the ray goes on past it
                 start = start + d * step
@@ -128,16 +139,89 @@ def _trace(mesh: wp.uint64, real: wp.array2d(dtype=wp.float32), s: int, u0: int,
     position[i, j] = p_out
     normal[i, j] = n_out
     albedo[i, j] = a_out
+    face[i, j] = wp.int32(f_out)
+
+
+@wp.func
+def _texel(texels: wp.array(dtype=wp.vec3), offset: int, w: int, h: int, x: int, y: int) -> wp.vec3:
+    """Texel (x, y) of a w x h texture stored row by row from `offset`, the coordinates wrapped (repeat)."""
+    return texels[offset + ((y % h) + h) % h * w + ((x % w) + w) % w]
+
+
+@wp.kernel
+def _texture(face: wp.array2d(dtype=wp.int32), position: wp.array2d(dtype=wp.vec3),
+             face_texture: wp.array(dtype=wp.int32), v0: wp.array(dtype=wp.vec3d), e1: wp.array(dtype=wp.vec3d),
+             e2: wp.array(dtype=wp.vec3d), uv0: wp.array(dtype=wp.vec2), uv1: wp.array(dtype=wp.vec2),
+             uv2: wp.array(dtype=wp.vec2), texels: wp.array(dtype=wp.vec3), info: wp.array(dtype=wp.vec3i),
+             albedo: wp.array2d(dtype=wp.vec3)):
+    i, j = wp.tid()
+    f = face[i, j]
+    if f < 0:
+        return
+    k = face_texture[f]
+    if k < 0:
+        return
+    d = wp.vec3d(position[i, j]) - v0[f]   # barycentrics of the pixel's point on its face
+    a = e1[f]
+    b = e2[f]
+    d00 = wp.dot(a, a)
+    d01 = wp.dot(a, b)
+    d11 = wp.dot(b, b)
+    den = d00 * d11 - d01 * d01
+    if den <= wp.float64(0.0):
+        return
+    b1 = wp.float32((d11 * wp.dot(d, a) - d01 * wp.dot(d, b)) / den)
+    b2 = wp.float32((d00 * wp.dot(d, b) - d01 * wp.dot(d, a)) / den)
+    uv = uv0[f] * (1.0 - b1 - b2) + uv1[f] * b1 + uv2[f] * b2
+    n = info[k]
+    x = uv[0] * wp.float32(n[1]) - 0.5                # texel centres at half-integers; v up, the image's row 0 on top
+    y = (1.0 - uv[1]) * wp.float32(n[2]) - 0.5
+    x0 = wp.floor(x)
+    y0 = wp.floor(y)
+    fx = x - x0
+    fy = y - y0
+    xi = int(x0)
+    yi = int(y0)
+    top = _texel(texels, n[0], n[1], n[2], xi, yi) * (1.0 - fx) + _texel(texels, n[0], n[1], n[2], xi + 1, yi) * fx
+    low = _texel(texels, n[0], n[1], n[2], xi, yi + 1) * (1.0 - fx) + _texel(texels, n[0], n[1], n[2], xi + 1,
+                                                                              yi + 1) * fx
+    albedo[i, j] = top * (1.0 - fy) + low * fy
+
+
+class Textures:
+    """Textured faces on a device, for the G-buffer's albedo (`apply`): each face's texture (-1: its one albedo), its
+    first vertex and edges (a point's barycentrics), its vertices' texture coordinates; the textures' linear RGB
+    texels in one array, with each one's (offset, width, height)."""
+
+    def __init__(self, triangles: np.ndarray, uv: np.ndarray, face_texture: np.ndarray, textures: list[np.ndarray],
+                 device: str):
+        tri = np.asarray(triangles, np.float64)
+        uv = np.asarray(uv, np.float32)
+        sizes = [t.shape[0] * t.shape[1] for t in textures]
+        offsets = np.concatenate([[0], np.cumsum(sizes)[:-1]]).astype(np.int64)
+        parts = [(np.asarray(face_texture, np.int32), wp.int32), (tri[:, 0], wp.vec3d),
+                 (tri[:, 1] - tri[:, 0], wp.vec3d), (tri[:, 2] - tri[:, 0], wp.vec3d), (uv[:, 0], wp.vec2),
+                 (uv[:, 1], wp.vec2), (uv[:, 2], wp.vec2),
+                 (np.concatenate([t.reshape(-1, 3) for t in textures]).astype(np.float32), wp.vec3),
+                 (np.array([[o, t.shape[1], t.shape[0]] for o, t in zip(offsets, textures)], np.int32), wp.vec3i)]
+        self.arrays = [wp.array(np.ascontiguousarray(a), dtype=dtype, device=device) for a, dtype in parts]
+
+    def apply(self, face: wp.array, position: wp.array, albedo: wp.array) -> None:
+        """Overwrites `albedo` at the pixels whose `face` is textured with the texture's bilinear lookup at their
+        `position`'s texture coordinates."""
+        wp.launch(_texture, dim=face.shape, device=face.device, inputs=[face, position, *self.arrays],
+                  outputs=[albedo])
 
 
 class Faces:
     """A scene's faces on a device, for resolve and trace: a point of each face's plane, its unit normal (the
     triangle's winding: counter-clockwise seen from the front), its albedo; with `triangles` (F, 3, 3) also their
-    Warp mesh (trace's)."""
+    Warp mesh (trace's); with `textures` the albedo of the textured faces looked up per pixel."""
 
     def __init__(self, p0: np.ndarray, normal: np.ndarray, albedo: np.ndarray, device: str,
-                 triangles: np.ndarray | None = None):
+                 triangles: np.ndarray | None = None, textures: Textures | None = None):
         self.device = device
+        self.textures = textures
         self.p0 = wp.array(np.asarray(p0, np.float64), dtype=wp.vec3d, device=device)
         self.normal = wp.array(np.asarray(normal, np.float64), dtype=wp.vec3d, device=device)
         self.albedo = wp.array(np.asarray(albedo, np.float32), dtype=wp.vec3, device=device)
@@ -148,22 +232,35 @@ class Faces:
                                                                  dtype=wp.int32, device=device))
 
 
+def _view(s: int, origin: tuple[int, int], intr_hi, pose: np.ndarray) -> list:
+    """The kernels' view arguments: s, the window's supersampled origin, the supersampled intrinsics, the pose's
+    rotation and translation (float64)."""
+    pose = np.asarray(pose, np.float64)
+    return [int(s), int(origin[0]), int(origin[1]), float(intr_hi.fx), float(intr_hi.fy), float(intr_hi.cx),
+            float(intr_hi.cy), wp.mat33d(*pose[:3, :3].ravel()), wp.vec3d(*pose[:3, 3])]
+
+
+def _layers(kernel, h: int, w: int, faces: Faces, inputs: list) -> tuple[np.ndarray, ...]:
+    """Launches a G-buffer kernel over h x w pixels and reads back (coverage, depth, position, normal, albedo) in one
+    copy, the textured faces' albedo looked up on the device first."""
+    out = Packed([((h, w), wp.float32)] * 2 + [((h, w), wp.vec3)] * 3, faces.device)
+    face = wp.empty((h, w), dtype=wp.int32, device=faces.device)
+    wp.launch(kernel, dim=(h, w), device=faces.device, inputs=inputs, outputs=[*out.arrays, face])
+    if faces.textures is not None:
+        faces.textures.apply(face, out.arrays[2], out.arrays[4])
+    return tuple(out.numpy())
+
+
 def resolve(color: np.ndarray, zbuf: np.ndarray, real: np.ndarray, s: int, origin: tuple[int, int],
             intr_hi, pose: np.ndarray, faces: Faces, tolerance: float) -> tuple[np.ndarray, ...]:
     """(coverage, depth, position, normal, albedo) of a window of h x w pixels from its draw: `color` (h*s, w*s, >=3)
     uint8 face codes, `zbuf` (h*s, w*s) float32, `real` (h, w) float32 real depth (0: unknown), the window's
     supersampled top-left pixel `origin` (u0, v0), the supersampled intrinsics `intr_hi`, camera-to-world `pose`."""
     h, w = real.shape
-    dev = faces.device
-    out = Packed([((h, w), wp.float32)] * 2 + [((h, w), wp.vec3)] * 3, dev)   # one read-back for the five
-    pose = np.asarray(pose, np.float64)
-    wp.launch(_resolve, dim=(h, w), device=dev,
-              inputs=[*upload([color, zbuf, real], [wp.uint8, wp.float32, wp.float32], dev),
-                      int(s), int(origin[0]), int(origin[1]), float(intr_hi.fx), float(intr_hi.fy), float(intr_hi.cx),
-                      float(intr_hi.cy), wp.mat33d(*pose[:3, :3].ravel()), wp.vec3d(*pose[:3, 3]), faces.p0,
-                      faces.normal, faces.albedo, float(np.float32(tolerance))],
-              outputs=out.arrays)
-    return tuple(out.numpy())
+    return _layers(_resolve, h, w, faces,
+                   [*upload([color, zbuf, real], [wp.uint8, wp.float32, wp.float32], faces.device),
+                    *_view(s, origin, intr_hi, pose), faces.p0, faces.normal, faces.albedo,
+                    float(np.float32(tolerance))])
 
 
 def trace(real: np.ndarray, s: int, origin: tuple[int, int], intr_hi, pose: np.ndarray, faces: Faces,
@@ -175,14 +272,7 @@ def trace(real: np.ndarray, s: int, origin: tuple[int, int], intr_hi, pose: np.n
     if faces.mesh is None:
         raise ValueError("gbuffer.trace: the Faces were made without their triangles (no mesh to trace)")
     h, w = real.shape
-    dev = faces.device
-    out = Packed([((h, w), wp.float32)] * 2 + [((h, w), wp.vec3)] * 3, dev)
-    pose = np.asarray(pose, np.float64)
-    (real_dev,) = upload([real], [wp.float32], dev, pack=False)
-    wp.launch(_trace, dim=(h, w), device=dev,
-              inputs=[faces.mesh.id, real_dev, int(s), int(origin[0]), int(origin[1]), float(intr_hi.fx),
-                      float(intr_hi.fy), float(intr_hi.cx), float(intr_hi.cy),
-                      wp.mat33d(*pose[:3, :3].ravel()), wp.vec3d(*pose[:3, 3]), float(near), float(far), faces.p0,
-                      faces.normal, faces.albedo, float(np.float32(tolerance))],
-              outputs=out.arrays)
-    return tuple(out.numpy())
+    (real_dev,) = upload([real], [wp.float32], faces.device, pack=False)
+    return _layers(_trace, h, w, faces,
+                   [faces.mesh.id, real_dev, *_view(s, origin, intr_hi, pose), float(near), float(far), faces.p0,
+                    faces.normal, faces.albedo, float(np.float32(tolerance))])

@@ -2,7 +2,8 @@
 
 world = R @ (scale * v) + position, R = Rotation.from_euler('xyz', rotation, degrees=True) (DESIGN.md).
 Every object is checked when the scene loads (missing or unreadable file, empty mesh, non-finite
-transform or albedo), so a bad object fails the run before any frame is processed. The SDF grid
+transform or albedo, albedo = "texture" on a mesh without one), so a bad object fails the run before any frame is
+processed. The SDF grid
 (voxel_grid) lets the transfer kernel test visibility rays against real and virtual geometry in one pass.
 """
 from __future__ import annotations
@@ -13,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from photoreg.config import ObjectConfig
+from photoreg.config import ALBEDO_TEXTURE, ObjectConfig
 from photoreg.device import init_warp
 from photoreg.kernels.grid import SDF_DTYPE, SDF_NUMPY, DenseGrid, update_empty_distance
 
@@ -26,13 +27,15 @@ GRID_TRUNC_VOXELS = 4.0
 
 @dataclass
 class VirtualObject:
-    """One placed object: world-space triangles and its linear albedo."""
+    """One placed object: world-space triangles and its linear albedo, one colour or a texture."""
 
     source: str                 # the mesh file, for messages
     vertices: np.ndarray        # (V, 3) float64 world positions
     faces: np.ndarray           # (F, 3) int64
-    albedo: np.ndarray          # (3,) float32 linear RGB
+    albedo: np.ndarray          # (3,) float32 linear RGB (textured: the texture's mean)
     transform: np.ndarray       # (4, 4) object-to-world (object_transform)
+    uv: np.ndarray | None = None       # (V, 2) float32 texture coordinates (origin at the image's bottom left)
+    texture: np.ndarray | None = None  # (H, W, 3) float32 linear RGB albedo, row 0 the image's top
 
     def local_vertices(self) -> np.ndarray:
         """(V, 3) vertices in the mesh file's own frame (the transform undone)."""
@@ -63,6 +66,15 @@ class VirtualScene:
             base += len(o.vertices)
         return np.concatenate(verts), np.concatenate(faces), np.concatenate(owner)
 
+    def textures(self) -> tuple[np.ndarray, np.ndarray, list[np.ndarray]]:
+        """The textured objects' albedo, alongside triangles(): texture coordinates of every vertex (V, 2) (zero on
+        untextured objects), each object's texture index (-1: its one albedo), the textures."""
+        uv = [o.uv if o.uv is not None else np.zeros((len(o.vertices), 2), np.float32) for o in self.objects]
+        has = np.array([o.texture is not None for o in self.objects])
+        index = np.full(len(self.objects), -1, np.int32)
+        index[has] = np.arange(has.sum())
+        return np.concatenate(uv), index, [o.texture for o in self.objects if o.texture is not None]
+
 
 def object_transform(obj: ObjectConfig) -> np.ndarray:
     """4x4 object-to-world matrix: world = R @ (scale * v) + position; ValueError when non-finite."""
@@ -86,9 +98,13 @@ def load_object(obj: ObjectConfig) -> VirtualObject:
     if not path.is_file():
         raise FileNotFoundError(f"{path}: virtual object mesh not found")
     T = object_transform(obj)
-    albedo = np.asarray(obj.albedo, dtype=np.float64)
-    if albedo.shape != (3,) or not np.all(np.isfinite(albedo)) or np.any(albedo < 0):
-        raise ValueError(f"{path}: object albedo must be 3 finite non-negative numbers, got {obj.albedo}")
+    textured = isinstance(obj.albedo, str)
+    if textured and obj.albedo != ALBEDO_TEXTURE:
+        raise ValueError(f"{path}: object albedo must be 3 numbers or {ALBEDO_TEXTURE!r}, got {obj.albedo!r}")
+    if not textured:
+        albedo = np.asarray(obj.albedo, dtype=np.float64)
+        if albedo.shape != (3,) or not np.all(np.isfinite(albedo)) or np.any(albedo < 0):
+            raise ValueError(f"{path}: object albedo must be 3 finite non-negative numbers, got {obj.albedo}")
     try:
         mesh = trimesh.load(str(path), force="mesh", process=True)
     except Exception as e:  # trimesh raises many types for unreadable files
@@ -98,7 +114,37 @@ def load_object(obj: ObjectConfig) -> VirtualObject:
     if not np.all(np.isfinite(mesh.vertices)):
         raise ValueError(f"{path}: mesh has non-finite vertices")
     v = np.asarray(mesh.vertices, np.float64) @ T[:3, :3].T + T[:3, 3]
-    return VirtualObject(str(path), v, np.asarray(mesh.faces, np.int64), albedo.astype(np.float32), T)
+    faces = np.asarray(mesh.faces, np.int64)
+    if not textured:
+        return VirtualObject(str(path), v, faces, albedo.astype(np.float32), T)
+    uv, texture = base_colour_texture(mesh, path)
+    return VirtualObject(str(path), v, faces, texture.mean(axis=(0, 1)), T, uv, texture)
+
+
+def base_colour_texture(mesh, path: Path) -> tuple[np.ndarray, np.ndarray]:
+    """(uv (V, 2) float32, linear RGB albedo (H, W, 3) float32) of a trimesh mesh's base colour: its texture image
+    decoded from sRGB, times the material's baseColorFactor where it has one (glTF's PBR materials; OBJ's and PLY's
+    images alone), or that factor alone (a 1 x 1 texture) where a glTF material has no image. ValueError naming the
+    file when there is neither, or an image without texture coordinates."""
+    from photoreg.io.images import srgb_to_linear
+
+    material = getattr(mesh.visual, "material", None)
+    if path.suffix.lower() == ".obj" and b"mtllib" not in path.read_bytes():
+        material = None   # trimesh gives an OBJ with texture coordinates and no material a grey stand-in image
+    image = getattr(material, "baseColorTexture", None) or getattr(material, "image", None)
+    factor = getattr(material, "baseColorFactor", None)
+    if image is None and factor is None:
+        raise ValueError(f"{path}: albedo = {ALBEDO_TEXTURE!r} but the mesh has no texture image or base colour")
+    scale = np.ones(3, np.float32)
+    if factor is not None:
+        scale = np.asarray(factor, np.float32)[:3] / (255.0 if np.asarray(factor).dtype == np.uint8 else 1.0)
+    if image is None:
+        return np.zeros((len(mesh.vertices), 2), np.float32), scale.reshape(1, 1, 3)
+    uv = getattr(mesh.visual, "uv", None)
+    if uv is None or len(uv) != len(mesh.vertices) or not np.all(np.isfinite(uv)):
+        raise ValueError(f"{path}: albedo = {ALBEDO_TEXTURE!r} but the mesh has no (finite) texture coordinates")
+    texture = srgb_to_linear(np.ascontiguousarray(np.asarray(image.convert("RGB"), np.uint8)))
+    return np.asarray(uv, np.float32), np.ascontiguousarray(texture * scale, np.float32)
 
 
 def load_scene(objects: list[ObjectConfig]) -> VirtualScene:
