@@ -82,6 +82,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--mesh", help="mesh file for the tabletop scene's mesh object (default: a procedural cylinder)")
     p.add_argument("--overexpose", type=float, default=1.0,
                    help="times the chosen exposure: above 1 the brightest surfaces saturate, as a camera's do")
+    p.add_argument("--insert-texture", action="store_true",
+                   help="texture the inserted cube (its session then asks for albedo = \"texture\")")
 
     p = sub.add_parser("score", help="official accuracy metrics of a run against ground truth")
     p.add_argument("out", help="output folder of a run (holds lighting.jsonl)")

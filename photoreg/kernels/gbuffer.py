@@ -13,7 +13,8 @@ nearest face that faces the camera (pyrender culls back faces) standing for the 
 and attributes as in the resolve, from that face's plane.
 
 Both name each pixel's face; where it is textured (objects.albedo = "texture") `Textures.apply` replaces the face's
-one albedo with the texture's bilinear lookup at the pixel's point, on the device before the one read-back.
+one albedo with the mean of the texture's bilinear lookups where the pixel's subsample rays meet the face's plane
+(the texture filtered over the pixel, as a supersampled render sees it), on the device before the one read-back.
 """
 from __future__ import annotations
 
@@ -148,33 +149,11 @@ def _texel(texels: wp.array(dtype=wp.vec3), offset: int, w: int, h: int, x: int,
     return texels[offset + ((y % h) + h) % h * w + ((x % w) + w) % w]
 
 
-@wp.kernel
-def _texture(face: wp.array2d(dtype=wp.int32), position: wp.array2d(dtype=wp.vec3),
-             face_texture: wp.array(dtype=wp.int32), v0: wp.array(dtype=wp.vec3d), e1: wp.array(dtype=wp.vec3d),
-             e2: wp.array(dtype=wp.vec3d), uv0: wp.array(dtype=wp.vec2), uv1: wp.array(dtype=wp.vec2),
-             uv2: wp.array(dtype=wp.vec2), texels: wp.array(dtype=wp.vec3), info: wp.array(dtype=wp.vec3i),
-             albedo: wp.array2d(dtype=wp.vec3)):
-    i, j = wp.tid()
-    f = face[i, j]
-    if f < 0:
-        return
-    k = face_texture[f]
-    if k < 0:
-        return
-    d = wp.vec3d(position[i, j]) - v0[f]   # barycentrics of the pixel's point on its face
-    a = e1[f]
-    b = e2[f]
-    d00 = wp.dot(a, a)
-    d01 = wp.dot(a, b)
-    d11 = wp.dot(b, b)
-    den = d00 * d11 - d01 * d01
-    if den <= wp.float64(0.0):
-        return
-    b1 = wp.float32((d11 * wp.dot(d, a) - d01 * wp.dot(d, b)) / den)
-    b2 = wp.float32((d00 * wp.dot(d, b) - d01 * wp.dot(d, a)) / den)
-    uv = uv0[f] * (1.0 - b1 - b2) + uv1[f] * b1 + uv2[f] * b2
-    n = info[k]
-    x = uv[0] * wp.float32(n[1]) - 0.5                # texel centres at half-integers; v up, the image's row 0 on top
+@wp.func
+def _lookup(texels: wp.array(dtype=wp.vec3), n: wp.vec3i, uv: wp.vec2) -> wp.vec3:
+    """Bilinear lookup of texture n = (offset, width, height) at `uv`: texel centres at half-integers, v up (the
+    image's row 0 on top), repeating."""
+    x = uv[0] * wp.float32(n[1]) - 0.5
     y = (1.0 - uv[1]) * wp.float32(n[2]) - 0.5
     x0 = wp.floor(x)
     y0 = wp.floor(y)
@@ -185,7 +164,45 @@ def _texture(face: wp.array2d(dtype=wp.int32), position: wp.array2d(dtype=wp.vec
     top = _texel(texels, n[0], n[1], n[2], xi, yi) * (1.0 - fx) + _texel(texels, n[0], n[1], n[2], xi + 1, yi) * fx
     low = _texel(texels, n[0], n[1], n[2], xi, yi + 1) * (1.0 - fx) + _texel(texels, n[0], n[1], n[2], xi + 1,
                                                                               yi + 1) * fx
-    albedo[i, j] = top * (1.0 - fy) + low * fy
+    return top * (1.0 - fy) + low * fy
+
+
+@wp.kernel
+def _texture(face: wp.array2d(dtype=wp.int32), s: int, u0: int, v0: int, fx: wp.float64, fy: wp.float64,
+             cx: wp.float64, cy: wp.float64, rot: wp.mat33d, t: wp.vec3d, face_texture: wp.array(dtype=wp.int32),
+             p0: wp.array(dtype=wp.vec3d), e1: wp.array(dtype=wp.vec3d), e2: wp.array(dtype=wp.vec3d),
+             uv0: wp.array(dtype=wp.vec2), uv1: wp.array(dtype=wp.vec2), uv2: wp.array(dtype=wp.vec2),
+             texels: wp.array(dtype=wp.vec3), info: wp.array(dtype=wp.vec3i), albedo: wp.array2d(dtype=wp.vec3)):
+    i, j = wp.tid()
+    f = face[i, j]
+    if f < 0:
+        return
+    k = face_texture[f]
+    if k < 0:
+        return
+    a = e1[f]
+    b = e2[f]
+    normal = wp.cross(a, b)
+    d00 = wp.dot(a, a)
+    d01 = wp.dot(a, b)
+    d11 = wp.dot(b, b)
+    den = d00 * d11 - d01 * d01
+    if den <= wp.float64(0.0):
+        return
+    total = wp.vec3(0.0, 0.0, 0.0)
+    count = int(0)
+    for r in range(s):   # the pixel's subsample rays on the face's plane: its footprint, as the draw's subsamples
+        for c in range(s):
+            ray = _subsample_ray(j * s + c + u0, i * s + r + v0, fx, fy, cx, cy, rot)
+            along = wp.dot(normal, ray)
+            if along != wp.float64(0.0):
+                d = t + ray * (wp.dot(normal, p0[f] - t) / along) - p0[f]
+                b1 = wp.float32((d11 * wp.dot(d, a) - d01 * wp.dot(d, b)) / den)   # barycentrics (may lie outside)
+                b2 = wp.float32((d00 * wp.dot(d, b) - d01 * wp.dot(d, a)) / den)
+                total += _lookup(texels, info[k], uv0[f] * (1.0 - b1 - b2) + uv1[f] * b1 + uv2[f] * b2)
+                count += 1
+    if count > 0:
+        albedo[i, j] = total / wp.float32(count)
 
 
 class Textures:
@@ -206,11 +223,11 @@ class Textures:
                  (np.array([[o, t.shape[1], t.shape[0]] for o, t in zip(offsets, textures)], np.int32), wp.vec3i)]
         self.arrays = [wp.array(np.ascontiguousarray(a), dtype=dtype, device=device) for a, dtype in parts]
 
-    def apply(self, face: wp.array, position: wp.array, albedo: wp.array) -> None:
-        """Overwrites `albedo` at the pixels whose `face` is textured with the texture's bilinear lookup at their
-        `position`'s texture coordinates."""
-        wp.launch(_texture, dim=face.shape, device=face.device, inputs=[face, position, *self.arrays],
-                  outputs=[albedo])
+    def apply(self, face: wp.array, view: list, albedo: wp.array) -> None:
+        """Overwrites `albedo` at the pixels whose `face` is textured with the mean of the texture's bilinear lookups
+        where the pixel's s x s subsample rays (`view`: _view's arguments) meet that face's plane: the texture
+        filtered over the pixel's footprint, as a supersampled render averages it."""
+        wp.launch(_texture, dim=face.shape, device=face.device, inputs=[face, *view, *self.arrays], outputs=[albedo])
 
 
 class Faces:
@@ -240,14 +257,15 @@ def _view(s: int, origin: tuple[int, int], intr_hi, pose: np.ndarray) -> list:
             float(intr_hi.cy), wp.mat33d(*pose[:3, :3].ravel()), wp.vec3d(*pose[:3, 3])]
 
 
-def _layers(kernel, h: int, w: int, faces: Faces, inputs: list) -> tuple[np.ndarray, ...]:
-    """Launches a G-buffer kernel over h x w pixels and reads back (coverage, depth, position, normal, albedo) in one
-    copy, the textured faces' albedo looked up on the device first."""
+def _layers(kernel, h: int, w: int, faces: Faces, view: list, inputs: list) -> tuple[np.ndarray, ...]:
+    """Launches a G-buffer kernel over h x w pixels (`inputs`, `view` (_view's) among them) and reads back
+    (coverage, depth, position, normal, albedo) in one copy, the textured faces' albedo looked up on the device
+    first."""
     out = Packed([((h, w), wp.float32)] * 2 + [((h, w), wp.vec3)] * 3, faces.device)
     face = wp.empty((h, w), dtype=wp.int32, device=faces.device)
     wp.launch(kernel, dim=(h, w), device=faces.device, inputs=inputs, outputs=[*out.arrays, face])
     if faces.textures is not None:
-        faces.textures.apply(face, out.arrays[2], out.arrays[4])
+        faces.textures.apply(face, view, out.arrays[4])
     return tuple(out.numpy())
 
 
@@ -257,10 +275,10 @@ def resolve(color: np.ndarray, zbuf: np.ndarray, real: np.ndarray, s: int, origi
     uint8 face codes, `zbuf` (h*s, w*s) float32, `real` (h, w) float32 real depth (0: unknown), the window's
     supersampled top-left pixel `origin` (u0, v0), the supersampled intrinsics `intr_hi`, camera-to-world `pose`."""
     h, w = real.shape
-    return _layers(_resolve, h, w, faces,
-                   [*upload([color, zbuf, real], [wp.uint8, wp.float32, wp.float32], faces.device),
-                    *_view(s, origin, intr_hi, pose), faces.p0, faces.normal, faces.albedo,
-                    float(np.float32(tolerance))])
+    view = _view(s, origin, intr_hi, pose)
+    return _layers(_resolve, h, w, faces, view,
+                   [*upload([color, zbuf, real], [wp.uint8, wp.float32, wp.float32], faces.device), *view, faces.p0,
+                    faces.normal, faces.albedo, float(np.float32(tolerance))])
 
 
 def trace(real: np.ndarray, s: int, origin: tuple[int, int], intr_hi, pose: np.ndarray, faces: Faces,
@@ -273,6 +291,7 @@ def trace(real: np.ndarray, s: int, origin: tuple[int, int], intr_hi, pose: np.n
         raise ValueError("gbuffer.trace: the Faces were made without their triangles (no mesh to trace)")
     h, w = real.shape
     (real_dev,) = upload([real], [wp.float32], faces.device, pack=False)
-    return _layers(_trace, h, w, faces,
-                   [faces.mesh.id, real_dev, *_view(s, origin, intr_hi, pose), float(near), float(far), faces.p0,
-                    faces.normal, faces.albedo, float(np.float32(tolerance))])
+    view = _view(s, origin, intr_hi, pose)
+    return _layers(_trace, h, w, faces, view,
+                   [faces.mesh.id, real_dev, *view, float(near), float(far), faces.p0, faces.normal, faces.albedo,
+                    float(np.float32(tolerance))])

@@ -12,11 +12,12 @@ import importlib.metadata
 import json
 import shlex
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Callable
 
 import numpy as np
+from trimesh.exchange.obj import export_obj
 
 from ..io.atomic import atomic_path, write_json, write_text
 from ..io.images import linear_to_srgb, write_exr, write_png_rgb
@@ -51,6 +52,7 @@ class SynthConfig:
     noise: bool = True  # Kinect-like depth in depth/ and the clean depth in depth_clean/
     mesh: str | None = None  # mesh file for the tabletop's mesh object (default: a procedural cylinder)
     overexpose: float = 1.0  # times the chosen exposure (> 1: the brightest surfaces saturate, as a camera's do)
+    insert_texture: bool = False  # the inserted cube textured (scenes.insert_texture), its session albedo = "texture"
     sky: ProceduralSky = field(default_factory=ProceduralSky)
 
     def command_line(self) -> str:
@@ -62,6 +64,7 @@ class SynthConfig:
         args += ["--direct-only"] * self.direct_only + ["--no-noise"] * (not self.noise)
         args += ["--mesh", self.mesh] if self.mesh else []
         args += ["--overexpose", f"{self.overexpose:g}"] if self.overexpose != 1.0 else []
+        args += ["--insert-texture"] * self.insert_texture
         return shlex.join(args)
 
     @property
@@ -127,10 +130,11 @@ def _session_toml(obj) -> str:
     """session.toml inserting the virtual object into this recording (DESIGN.md session file)."""
     def vec(v):
         return "[" + ", ".join(repr(float(x)) for x in v) + "]"
+    albedo = '"texture"' if obj.textured else vec(obj.albedo)
     return (f"# Virtual object of the insert/ ground truth, placed in this recording (written by photoreg synth).\n"
             f"[recording]\npath = \".\"\nformat = \"native\"\n\n"
             f"[[objects]]\nmesh = \"object.obj\"\nposition = {vec(obj.position)}\nrotation = {vec(obj.rotation_deg)}\n"
-            f"scale = {float(obj.scale)!r}\nalbedo = {vec(obj.albedo)}\n\n"
+            f"scale = {float(obj.scale)!r}\nalbedo = {albedo}\n\n"
             f"[render]\nshadows = \"voxel\"\n\n[output]\ndir = \"out\"\n")
 
 
@@ -138,6 +142,7 @@ def _world(cfg: SynthConfig):
     """(scene layout, environment image, its scene.json description, emitter rotation, intrinsics, camera
     poses) of a config."""
     layout = build_scene(cfg.scene, cfg.mesh)
+    layout.insert = replace(layout.insert, textured=cfg.insert_texture)
     env_image, env_desc = load_environment(cfg.env, cfg.sky)
     return (layout, env_image, env_desc, emitter_rotation(cfg.yaw), default_intrinsics(cfg.width, cfg.height),
             camera_path(cfg.camera, cfg.frames, layout.rig, cfg.seed))
@@ -210,8 +215,12 @@ def generate(cfg: SynthConfig, log: Callable[[str], None] | None = print) -> Pat
     writer.write_lighting_gt(sh, exposure=exposure)
 
     if inserts:
-        with atomic_path(out / "object.obj") as tmp:
-            layout.insert.local_mesh().export(tmp, file_type="obj", include_normals=False)
+        text, files = export_obj(layout.insert.local_mesh(), include_normals=False, return_texture=True,
+                                 mtl_name="object.mtl")
+        for name, data in files.items():   # a textured cube's material and image, beside it
+            with atomic_path(out / name) as tmp:
+                tmp.write_bytes(data)
+        write_text(out / "object.obj", text)
         write_text(out / "session.toml", _session_toml(layout.insert))
     write_json(out / "scene.json", {
         "generator": {"name": "photoreg synth", "version": GENERATOR_VERSION,
@@ -237,7 +246,8 @@ def generate(cfg: SynthConfig, log: Callable[[str], None] | None = print) -> Pat
                   "noise": ("sigma = 1.2 mm + 1.9 mm * (z - 0.4)^2, holes where a 3x3 neighbourhood spans "
                             "> 4% of z or touches a missing pixel, quantised to 1/depth_scale m") if cfg.noise else None},
         "insert": {"frames": inserts, "mesh": "object.obj" if inserts else None,
-                   "object": {**asdict(layout.insert), "type": "box (unit cube, base on z=0)"},
+                   "object": {**asdict(layout.insert), "type": "box (unit cube, base on z=0)"
+                              + (", every face textured (object.mtl)" if cfg.insert_texture else "")},
                    "images": "insert/NNNNNN.png (sRGB) and .exr (linear, exposure applied); insert_mask/ 255 = virtual object"},
     })
     total = time.perf_counter() - t_start
@@ -252,6 +262,6 @@ def synth_command(args) -> int:
     cfg = SynthConfig(scene=args.scene, out=args.out, frames=args.frames, width=width, height=height, spp=args.spp,
                       env=args.env, yaw=args.yaw, seed=args.seed, camera=args.camera, direct_only=args.direct_only,
                       insert_frames=args.insert_frames, noise=not args.no_noise, mesh=args.mesh,
-                      overexpose=args.overexpose)
+                      overexpose=args.overexpose, insert_texture=args.insert_texture)
     generate(cfg, log=lambda msg: print(msg, flush=True))
     return 0

@@ -45,6 +45,21 @@ def _bsdf(albedo) -> dict:
     return {"type": "twosided", "bsdf": {"type": "diffuse", "reflectance": {"type": "rgb", "value": list(map(float, albedo))}}}
 
 
+def _textured_bsdf(texture: np.ndarray):
+    """Mitsuba diffuse BSDF (loaded) whose reflectance is an 8-bit sRGB texture (Mitsuba decodes it to linear: raw =
+    false), bilinear, repeating; read from a PNG written for it."""
+    import tempfile
+    from pathlib import Path
+
+    from PIL import Image
+
+    with tempfile.TemporaryDirectory() as folder:   # Mitsuba reads the image when the dictionary is loaded
+        png = str(Path(folder) / "texture.png")
+        Image.fromarray(np.asarray(texture, np.uint8)).save(png)
+        return mitsuba().load_dict({"type": "twosided", "bsdf": {"type": "diffuse", "reflectance": {
+            "type": "bitmap", "filename": png, "raw": False, "filter_type": "bilinear", "wrap_mode": "repeat"}}})
+
+
 def _shape(obj: SceneObject):
     """Mitsuba shape of an object: spheres analytic, everything else its triangle mesh (flat normals,
     smooth ones for `mesh` objects)."""
@@ -56,15 +71,20 @@ def _shape(obj: SceneObject):
     tm = obj.local_mesh()
     tm.apply_transform(obj.transform)
     smooth = obj.type == "mesh"
+    textured = obj.texture is not None
     props = mi.Properties()
-    props["bsdf"] = mi.load_dict(_bsdf(obj.albedo))
-    mesh = mi.Mesh(obj.name, len(tm.vertices), len(tm.faces), props=props, has_vertex_normals=smooth)
+    props["bsdf"] = _textured_bsdf(obj.texture) if textured else mi.load_dict(_bsdf(obj.albedo))
+    mesh = mi.Mesh(obj.name, len(tm.vertices), len(tm.faces), props=props, has_vertex_normals=smooth,
+                   has_vertex_texcoords=textured)
     params = mi.traverse(mesh)
     floats, ints = type(params["vertex_positions"]), type(params["faces"])
     params["vertex_positions"] = floats(np.asarray(tm.vertices, dtype=np.float32).ravel())
     params["faces"] = ints(np.asarray(tm.faces, dtype=np.uint32).ravel())
     if smooth:
         params["vertex_normals"] = floats(np.asarray(tm.vertex_normals, dtype=np.float32).ravel())
+    if textured:   # Mitsuba's bitmap puts the image's row 0 at v = 0, OBJ's (the mesh's) at v = 1
+        uv = np.asarray(tm.visual.uv, np.float32)
+        params["vertex_texcoords"] = floats(np.stack([uv[:, 0], 1.0 - uv[:, 1]], 1).ravel())
     params.update()
     return mesh
 

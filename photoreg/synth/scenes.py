@@ -25,9 +25,35 @@ def placement(position, yaw_deg: float = 0.0, rotation_xyz_deg=None) -> np.ndarr
     return T
 
 
+INSERT_TEXTURE_BLOCKS = 8   # the textured insert's texture: 8 x 8 blocks of 8 x 8 texels, one colour each
+
+
+def insert_texture() -> np.ndarray:
+    """The textured insert's base colour (`photoreg synth --insert-texture`): (64, 64, 3) uint8 sRGB, blocks of
+    colours from a fixed seed (8-bit levels 40-230: linear albedo 0.02-0.79)."""
+    blocks = np.random.default_rng(7).integers(40, 231, (INSERT_TEXTURE_BLOCKS, INSERT_TEXTURE_BLOCKS, 3))
+    return np.kron(blocks, np.ones((8, 8, 1))).astype(np.uint8)
+
+
+def textured_box(extents) -> trimesh.Trimesh:
+    """A box (base on z = 0) whose every face carries the whole texture: its triangles' vertices unmerged, each
+    vertex's texture coordinates its two coordinates across its face's normal, scaled to [0, 1] (v up, OBJ's
+    convention; the image's row 0 at v = 1)."""
+    box = trimesh.creation.box(extents=extents)
+    box.apply_translation([0, 0, extents[2] / 2])
+    vertices = box.vertices[box.faces].reshape(-1, 3)
+    axis = np.repeat(np.abs(box.face_normals).argmax(axis=1), 3)
+    across = np.array([[1, 2], [0, 2], [0, 1]])[axis]                  # the two axes in each face's plane
+    lo, size = box.bounds[0], np.asarray(extents, np.float64)
+    uv = (np.take_along_axis(vertices, across, 1) - lo[across]) / size[across]
+    return trimesh.Trimesh(vertices, np.arange(len(vertices)).reshape(-1, 3), process=False,
+                           visual=trimesh.visual.TextureVisuals(uv=uv))
+
+
 @dataclass
 class SceneObject:
-    """One diffuse object: shape type, size, object-to-world transform, linear RGB albedo."""
+    """One diffuse object: shape type, size, object-to-world transform, linear RGB albedo (or, on a box, an sRGB
+    texture over every face: textured_box)."""
 
     name: str
     type: str
@@ -35,6 +61,7 @@ class SceneObject:
     transform: np.ndarray
     albedo: tuple[float, float, float]
     source: str | None = None  # mesh file of a `mesh` object
+    texture: np.ndarray | None = None  # (H, W, 3) uint8 sRGB base colour of a textured box
 
     def local_mesh(self) -> trimesh.Trimesh:
         """Triangle mesh in the object's local frame (base on z = 0); spheres as fine icospheres."""
@@ -44,6 +71,8 @@ class SceneObject:
                                 [[0, 1, 2], [0, 2, 3]], process=False)
             m.apply_scale([self.size[0], self.size[1], 1.0])
             return m
+        if t == "box" and self.texture is not None:
+            return textured_box(self.size)
         if t == "box":
             m = trimesh.creation.box(extents=self.size)
             m.apply_translation([0, 0, self.size[2] / 2])
@@ -65,6 +94,8 @@ class SceneObject:
              "transform": np.asarray(self.transform, dtype=float).tolist(), "albedo": list(map(float, self.albedo))}
         if self.source:
             d["source"] = self.source
+        if self.texture is not None:
+            d["texture"] = "insert_texture() (photoreg.synth.scenes), sRGB"
         return d
 
 
@@ -111,8 +142,16 @@ class VirtualObject:
     rotation_deg: tuple[float, float, float] = (0.0, 0.0, 25.0)
     scale: float = 0.12
     albedo: tuple[float, float, float] = (0.7, 0.5, 0.3)
+    textured: bool = False   # insert_texture() over every face instead of `albedo`
 
     def local_mesh(self) -> trimesh.Trimesh:
+        """The unit cube in its own frame; textured: with its texture coordinates and image (OBJ export)."""
+        if self.textured:
+            from PIL import Image
+
+            m = textured_box((1.0, 1.0, 1.0))
+            m.visual = trimesh.visual.TextureVisuals(uv=m.visual.uv, image=Image.fromarray(insert_texture()))
+            return m
         m = trimesh.creation.box(extents=(1.0, 1.0, 1.0))
         m.apply_translation([0, 0, 0.5])
         return m
@@ -120,7 +159,7 @@ class VirtualObject:
     def scene_object(self) -> SceneObject:
         s = self.scale
         return SceneObject("virtual_box", "box", (s, s, s), placement(self.position, rotation_xyz_deg=self.rotation_deg),
-                           self.albedo)
+                           self.albedo, texture=insert_texture() if self.textured else None)
 
 
 @dataclass
