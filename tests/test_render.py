@@ -251,10 +251,38 @@ def test_gbuffer_albedo_from_the_mesh_texture(tmp_path, backend, device):
     bare.write_text("".join(line for line in (tmp_path / "quad.obj").read_text().splitlines(True)
                             if not line.startswith(("mtllib", "usemtl"))))
     for mesh in (plain, bare):
-        with pytest.raises(ValueError, match=f"{mesh.name}.*no texture image or base colour"):
+        with pytest.raises(ValueError, match=f"{mesh.name}.*no texture image, base colour or vertex"):
             load_scene([ObjectConfig(mesh=str(mesh), albedo="texture")])
     with pytest.raises(ValueError, match="albedo"):
         load_scene([ObjectConfig(mesh=str(plain), albedo="wood")])
+
+
+@pytest.mark.parametrize("backend", ["pyrender", "raycast"])
+def test_gbuffer_albedo_from_vertex_and_face_colours(tmp_path, backend):
+    """objects.albedo = "texture" on a mesh with vertex colours (a PLY) interpolates their linear values over each
+    face; with face colours each face takes its own; both decoded from sRGB (the quad of the texture test, split
+    along its diagonal y = x)."""
+    from photoreg.io.images import srgb_to_linear
+
+    corners = np.array([[200, 30, 30, 255], [30, 200, 30, 255], [30, 30, 200, 255], [220, 220, 40, 255]], np.uint8)
+    quad = [[-1, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0]], [[0, 1, 2], [0, 2, 3]]
+    trimesh.Trimesh(*quad, vertex_colors=corners, process=False).export(tmp_path / "vertex.ply")
+    trimesh.Trimesh(*quad, face_colors=corners[:2], process=False).export(tmp_path / "face.ply")
+    scale = 0.4
+    v, u = np.mgrid[0:INTR.height, 0:INTR.width]
+    x, y = (u - INTR.cx) / INTR.fx / scale, -(v - INTR.cy) / INTR.fy / scale   # LOOK_DOWN's hit, the quad's frame
+    L = srgb_to_linear(corners[None, :, :3])[0]
+    lower = (y <= x)[..., None]                                                # triangle 0 1 2, else 0 2 3
+    b1, b2 = np.where(lower[..., 0], (x - y) / 2, (x + 1) / 2), np.where(lower[..., 0], (y + 1) / 2, (y - x) / 2)
+    want_vertex = (L[0] * (1 - b1 - b2)[..., None] + np.where(lower, L[1], L[2]) * b1[..., None]
+                   + np.where(lower, L[2], L[3]) * b2[..., None])
+    want_face = np.where(lower, L[0], L[1])
+    for name, want in (("vertex", want_vertex), ("face", want_face)):
+        gb = GBufferRenderer(load_scene([ObjectConfig(mesh=str(tmp_path / f"{name}.ply"), scale=scale,
+                                                      albedo="texture")]), INTR, 2, "cpu", backend).render(LOOK_DOWN)
+        inside = (gb.coverage == 1) & (np.abs(x - y) > 0.1)                    # the footprint on one face
+        assert inside.sum() > 300, inside.sum()
+        np.testing.assert_allclose(gb.albedo[inside], want[inside], rtol=0, atol=1e-4, err_msg=name)
 
 
 def test_gbuffer_viewport_holds_the_window(tmp_path):

@@ -12,9 +12,9 @@ benchmarks/gpu.md, "The G-buffer's resolve in one kernel").
 nearest face that faces the camera (pyrender culls back faces) standing for the rasterised one; coverage, depth test
 and attributes as in the resolve, from that face's plane.
 
-Both name each pixel's face; where it is textured (objects.albedo = "texture") `Textures.apply` replaces the face's
-one albedo with the mean of the texture's bilinear lookups where the pixel's subsample rays meet the face's plane
-(the texture filtered over the pixel, as a supersampled render sees it), on the device before the one read-back.
+Both name each pixel's face; where its albedo varies (objects.albedo = "texture": a texture image, or vertex or face
+colours) `Textures.apply` replaces the face's one albedo with its mean where the pixel's subsample rays meet the
+face's plane (filtered over the pixel, as a supersampled render sees it), on the device before the one read-back.
 """
 from __future__ import annotations
 
@@ -167,18 +167,23 @@ def _lookup(texels: wp.array(dtype=wp.vec3), n: wp.vec3i, uv: wp.vec2) -> wp.vec
     return top * (1.0 - fy) + low * fy
 
 
+NO_TEXTURE = wp.constant(-1)       # a face's albedo source: its object's one albedo ...
+CORNER_COLOURS = wp.constant(-2)   # ... or colours at its corners (vertex or face colours); >= 0: a texture
+
+
 @wp.kernel
 def _texture(face: wp.array2d(dtype=wp.int32), s: int, u0: int, v0: int, fx: wp.float64, fy: wp.float64,
-             cx: wp.float64, cy: wp.float64, rot: wp.mat33d, t: wp.vec3d, face_texture: wp.array(dtype=wp.int32),
+             cx: wp.float64, cy: wp.float64, rot: wp.mat33d, t: wp.vec3d, source: wp.array(dtype=wp.int32),
              p0: wp.array(dtype=wp.vec3d), e1: wp.array(dtype=wp.vec3d), e2: wp.array(dtype=wp.vec3d),
              uv0: wp.array(dtype=wp.vec2), uv1: wp.array(dtype=wp.vec2), uv2: wp.array(dtype=wp.vec2),
+             c0: wp.array(dtype=wp.vec3), c1: wp.array(dtype=wp.vec3), c2: wp.array(dtype=wp.vec3),
              texels: wp.array(dtype=wp.vec3), info: wp.array(dtype=wp.vec3i), albedo: wp.array2d(dtype=wp.vec3)):
     i, j = wp.tid()
     f = face[i, j]
     if f < 0:
         return
-    k = face_texture[f]
-    if k < 0:
+    k = source[f]
+    if k == NO_TEXTURE:
         return
     a = e1[f]
     b = e2[f]
@@ -199,34 +204,40 @@ def _texture(face: wp.array2d(dtype=wp.int32), s: int, u0: int, v0: int, fx: wp.
                 d = t + ray * (wp.dot(normal, p0[f] - t) / along) - p0[f]
                 b1 = wp.float32((d11 * wp.dot(d, a) - d01 * wp.dot(d, b)) / den)   # barycentrics (may lie outside)
                 b2 = wp.float32((d00 * wp.dot(d, b) - d01 * wp.dot(d, a)) / den)
-                total += _lookup(texels, info[k], uv0[f] * (1.0 - b1 - b2) + uv1[f] * b1 + uv2[f] * b2)
+                if k == CORNER_COLOURS:
+                    total += c0[f] * (1.0 - b1 - b2) + c1[f] * b1 + c2[f] * b2
+                else:
+                    total += _lookup(texels, info[k], uv0[f] * (1.0 - b1 - b2) + uv1[f] * b1 + uv2[f] * b2)
                 count += 1
     if count > 0:
         albedo[i, j] = total / wp.float32(count)
 
 
 class Textures:
-    """Textured faces on a device, for the G-buffer's albedo (`apply`): each face's texture (-1: its one albedo), its
-    first vertex and edges (a point's barycentrics), its vertices' texture coordinates; the textures' linear RGB
-    texels in one array, with each one's (offset, width, height)."""
+    """Faces whose albedo varies over them, on a device, for the G-buffer's albedo (`apply`): each face's source
+    (a texture's index, NO_TEXTURE or CORNER_COLOURS), its first vertex and edges (barycentrics), its corners'
+    texture coordinates and linear colours; the textures' linear RGB texels in one array, with each one's (offset,
+    width, height) (a black texel alone where there are none)."""
 
-    def __init__(self, triangles: np.ndarray, uv: np.ndarray, face_texture: np.ndarray, textures: list[np.ndarray],
-                 device: str):
+    def __init__(self, triangles: np.ndarray, source: np.ndarray, uv: np.ndarray, corners: np.ndarray,
+                 textures: list[np.ndarray], device: str):
         tri = np.asarray(triangles, np.float64)
-        uv = np.asarray(uv, np.float32)
+        uv, corners = np.asarray(uv, np.float32), np.asarray(corners, np.float32)
+        textures = textures or [np.zeros((1, 1, 3), np.float32)]
         sizes = [t.shape[0] * t.shape[1] for t in textures]
         offsets = np.concatenate([[0], np.cumsum(sizes)[:-1]]).astype(np.int64)
-        parts = [(np.asarray(face_texture, np.int32), wp.int32), (tri[:, 0], wp.vec3d),
+        parts = [(np.asarray(source, np.int32), wp.int32), (tri[:, 0], wp.vec3d),
                  (tri[:, 1] - tri[:, 0], wp.vec3d), (tri[:, 2] - tri[:, 0], wp.vec3d), (uv[:, 0], wp.vec2),
-                 (uv[:, 1], wp.vec2), (uv[:, 2], wp.vec2),
+                 (uv[:, 1], wp.vec2), (uv[:, 2], wp.vec2), (corners[:, 0], wp.vec3), (corners[:, 1], wp.vec3),
+                 (corners[:, 2], wp.vec3),
                  (np.concatenate([t.reshape(-1, 3) for t in textures]).astype(np.float32), wp.vec3),
                  (np.array([[o, t.shape[1], t.shape[0]] for o, t in zip(offsets, textures)], np.int32), wp.vec3i)]
         self.arrays = [wp.array(np.ascontiguousarray(a), dtype=dtype, device=device) for a, dtype in parts]
 
     def apply(self, face: wp.array, view: list, albedo: wp.array) -> None:
-        """Overwrites `albedo` at the pixels whose `face` is textured with the mean of the texture's bilinear lookups
-        where the pixel's s x s subsample rays (`view`: _view's arguments) meet that face's plane: the texture
-        filtered over the pixel's footprint, as a supersampled render averages it."""
+        """Overwrites `albedo` at the pixels whose `face` has a varying albedo with its mean where the pixel's s x s
+        subsample rays (`view`: _view's arguments) meet that face's plane (the texture's bilinear lookups, or the
+        corners' colours interpolated): filtered over the pixel's footprint, as a supersampled render averages it."""
         wp.launch(_texture, dim=face.shape, device=face.device, inputs=[face, *view, *self.arrays], outputs=[albedo])
 
 

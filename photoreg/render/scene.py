@@ -16,6 +16,8 @@ import numpy as np
 
 from photoreg.config import ALBEDO_TEXTURE, ObjectConfig
 from photoreg.device import init_warp
+from photoreg.io.images import srgb_to_linear
+from photoreg.kernels.gbuffer import CORNER_COLOURS, NO_TEXTURE
 from photoreg.kernels.grid import SDF_DTYPE, SDF_NUMPY, DenseGrid, update_empty_distance
 
 wp = init_warp()
@@ -27,7 +29,7 @@ GRID_TRUNC_VOXELS = 4.0
 
 @dataclass
 class VirtualObject:
-    """One placed object: world-space triangles and its linear albedo, one colour or a texture."""
+    """One placed object: world-space triangles and its linear albedo: one colour, a texture or corner colours."""
 
     source: str                 # the mesh file, for messages
     vertices: np.ndarray        # (V, 3) float64 world positions
@@ -36,11 +38,24 @@ class VirtualObject:
     transform: np.ndarray       # (4, 4) object-to-world (object_transform)
     uv: np.ndarray | None = None       # (V, 2) float32 texture coordinates (origin at the image's bottom left)
     texture: np.ndarray | None = None  # (H, W, 3) float32 linear RGB albedo, row 0 the image's top
+    corners: np.ndarray | None = None  # (F, 3, 3) float32 linear RGB albedo at each face's corners (vertex colours)
 
     def local_vertices(self) -> np.ndarray:
         """(V, 3) vertices in the mesh file's own frame (the transform undone)."""
         T = self.transform
         return np.linalg.solve(T[:3, :3], (self.vertices - T[:3, 3]).T).T
+
+
+@dataclass
+class FaceAlbedo:
+    """Where each face of VirtualScene.triangles() takes its albedo: `source` (F,) a texture's index, NO_TEXTURE
+    (its object's one albedo) or CORNER_COLOURS; its corners' texture coordinates (F, 3, 2) and linear colours
+    (F, 3, 3), zero where unused; the textures."""
+
+    source: np.ndarray
+    uv: np.ndarray
+    corners: np.ndarray
+    textures: list[np.ndarray]
 
 
 @dataclass
@@ -66,14 +81,19 @@ class VirtualScene:
             base += len(o.vertices)
         return np.concatenate(verts), np.concatenate(faces), np.concatenate(owner)
 
-    def textures(self) -> tuple[np.ndarray, np.ndarray, list[np.ndarray]]:
-        """The textured objects' albedo, alongside triangles(): texture coordinates of every vertex (V, 2) (zero on
-        untextured objects), each object's texture index (-1: its one albedo), the textures."""
-        uv = [o.uv if o.uv is not None else np.zeros((len(o.vertices), 2), np.float32) for o in self.objects]
-        has = np.array([o.texture is not None for o in self.objects])
-        index = np.full(len(self.objects), -1, np.int32)
-        index[has] = np.arange(has.sum())
-        return np.concatenate(uv), index, [o.texture for o in self.objects if o.texture is not None]
+    def face_albedo(self) -> FaceAlbedo:
+        """Each face's albedo source, alongside triangles()."""
+        source, uv, corners, textures = [], [], [], []
+        for o in self.objects:
+            n = len(o.faces)
+            if o.texture is not None:
+                source.append(np.full(n, len(textures), np.int32))
+                textures.append(o.texture)
+            else:
+                source.append(np.full(n, NO_TEXTURE if o.corners is None else CORNER_COLOURS, np.int32))
+            uv.append(o.uv[o.faces] if o.uv is not None else np.zeros((n, 3, 2), np.float32))
+            corners.append(o.corners if o.corners is not None else np.zeros((n, 3, 3), np.float32))
+        return FaceAlbedo(np.concatenate(source), np.concatenate(uv), np.concatenate(corners), textures)
 
 
 def object_transform(obj: ObjectConfig) -> np.ndarray:
@@ -117,6 +137,12 @@ def load_object(obj: ObjectConfig) -> VirtualObject:
     faces = np.asarray(mesh.faces, np.int64)
     if not textured:
         return VirtualObject(str(path), v, faces, albedo.astype(np.float32), T)
+    kind = getattr(mesh.visual, "kind", None)
+    if kind in ("vertex", "face"):   # colours at the vertices (or per face), 8-bit sRGB
+        colours = mesh.visual.vertex_colors[faces] if kind == "vertex" else np.repeat(
+            np.asarray(mesh.visual.face_colors)[:, None], 3, axis=1)
+        corners = srgb_to_linear(np.ascontiguousarray(np.asarray(colours, np.uint8)[..., :3]))
+        return VirtualObject(str(path), v, faces, corners.mean(axis=(0, 1)), T, corners=corners)
     uv, texture = base_colour_texture(mesh, path)
     return VirtualObject(str(path), v, faces, texture.mean(axis=(0, 1)), T, uv, texture)
 
@@ -126,15 +152,14 @@ def base_colour_texture(mesh, path: Path) -> tuple[np.ndarray, np.ndarray]:
     decoded from sRGB, times the material's baseColorFactor where it has one (glTF's PBR materials; OBJ's and PLY's
     images alone), or that factor alone (a 1 x 1 texture) where a glTF material has no image. ValueError naming the
     file when there is neither, or an image without texture coordinates."""
-    from photoreg.io.images import srgb_to_linear
-
     material = getattr(mesh.visual, "material", None)
     if path.suffix.lower() == ".obj" and b"mtllib" not in path.read_bytes():
         material = None   # trimesh gives an OBJ with texture coordinates and no material a grey stand-in image
     image = getattr(material, "baseColorTexture", None) or getattr(material, "image", None)
     factor = getattr(material, "baseColorFactor", None)
     if image is None and factor is None:
-        raise ValueError(f"{path}: albedo = {ALBEDO_TEXTURE!r} but the mesh has no texture image or base colour")
+        raise ValueError(f"{path}: albedo = {ALBEDO_TEXTURE!r} but the mesh has no texture image, base colour or "
+                         "vertex colours")
     scale = np.ones(3, np.float32)
     if factor is not None:
         scale = np.asarray(factor, np.float32)[:3] / (255.0 if np.asarray(factor).dtype == np.uint8 else 1.0)
