@@ -151,6 +151,7 @@ class ObjectConfig:
     rotation: list = field(default_factory=lambda: [0.0, 0.0, 0.0])  # degrees, scipy 'xyz'
     scale: float = 1.0
     albedo: list | str = field(default_factory=lambda: [0.8, 0.8, 0.8])   # linear RGB, or "texture" (the mesh's)
+    smooth: bool = False   # shade with the vertex normals interpolated over each face (else each face's own normal)
 
 
 ALBEDO_TEXTURE = "texture"   # objects.albedo: the mesh's base-colour texture instead of one colour

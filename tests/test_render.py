@@ -285,6 +285,27 @@ def test_gbuffer_albedo_from_vertex_and_face_colours(tmp_path, backend):
         np.testing.assert_allclose(gb.albedo[inside], want[inside], rtol=0, atol=1e-4, err_msg=name)
 
 
+@pytest.mark.parametrize("device", DEVICES)
+@pytest.mark.parametrize("backend", ["pyrender", "raycast"])
+def test_smooth_object_normals_follow_the_surface(tmp_path, backend, device):
+    """objects.smooth: a coarse sphere's (320 faces) G-buffer normals are its vertex normals interpolated over each
+    face and over the pixel: against the true sphere's normal at the pixel's point 1.5 degrees off on average, where
+    its faces' own normals (flat, the default) are 4.7 degrees off."""
+    path = tmp_path / "coarse.obj"
+    trimesh.creation.icosphere(subdivisions=2, radius=0.5).export(path)
+    error = {}
+    for smooth in (False, True):
+        scene = load_scene([ObjectConfig(mesh=str(path), position=[0.0, 0.0, -0.3], scale=0.8, smooth=smooth)])
+        gb = GBufferRenderer(scene, INTR, 2, device, backend).render(LOOK_DOWN)
+        inside = gb.coverage == 1
+        truth = gb.position[inside] - [0.0, 0.0, -0.3]
+        truth /= np.linalg.norm(truth, axis=1, keepdims=True)
+        assert np.allclose(np.linalg.norm(gb.normal[inside], axis=1), 1, atol=1e-5) and inside.sum() > 200
+        error[smooth] = np.degrees(np.arccos(np.clip((gb.normal[inside] * truth).sum(1), -1, 1)))
+    assert error[True].mean() < 2.5 and error[False].mean() > 2 * error[True].mean(), \
+        (error[True].mean(), error[False].mean())
+
+
 def test_gbuffer_viewport_holds_the_window(tmp_path):
     """A window's viewport holds its supersampled pixels, at most the supersampled frame's: with EGL rounded up to
     VIEWPORT_STEP (any size of framebuffer), with OSMesa (a context per size) to powers of two (few sizes)."""

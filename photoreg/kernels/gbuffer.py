@@ -13,8 +13,9 @@ nearest face that faces the camera (pyrender culls back faces) standing for the 
 and attributes as in the resolve, from that face's plane.
 
 Both name each pixel's face; where its albedo varies (objects.albedo = "texture": a texture image, or vertex or face
-colours) `Textures.apply` replaces the face's one albedo with its mean where the pixel's subsample rays meet the
-face's plane (filtered over the pixel, as a supersampled render sees it), on the device before the one read-back.
+colours) or its normal does (objects.smooth) `Varying.apply` replaces the face's one albedo and normal with their
+means where the pixel's subsample rays meet the face's plane (filtered over the pixel, as a supersampled render sees
+it), on the device before the one read-back.
 """
 from __future__ import annotations
 
@@ -172,18 +173,20 @@ CORNER_COLOURS = wp.constant(-2)   # ... or colours at its corners (vertex or fa
 
 
 @wp.kernel
-def _texture(face: wp.array2d(dtype=wp.int32), s: int, u0: int, v0: int, fx: wp.float64, fy: wp.float64,
+def _varying(face: wp.array2d(dtype=wp.int32), s: int, u0: int, v0: int, fx: wp.float64, fy: wp.float64,
              cx: wp.float64, cy: wp.float64, rot: wp.mat33d, t: wp.vec3d, source: wp.array(dtype=wp.int32),
-             p0: wp.array(dtype=wp.vec3d), e1: wp.array(dtype=wp.vec3d), e2: wp.array(dtype=wp.vec3d),
-             uv0: wp.array(dtype=wp.vec2), uv1: wp.array(dtype=wp.vec2), uv2: wp.array(dtype=wp.vec2),
-             c0: wp.array(dtype=wp.vec3), c1: wp.array(dtype=wp.vec3), c2: wp.array(dtype=wp.vec3),
-             texels: wp.array(dtype=wp.vec3), info: wp.array(dtype=wp.vec3i), albedo: wp.array2d(dtype=wp.vec3)):
+             smooth: wp.array(dtype=wp.int32), p0: wp.array(dtype=wp.vec3d), e1: wp.array(dtype=wp.vec3d),
+             e2: wp.array(dtype=wp.vec3d), uv0: wp.array(dtype=wp.vec2), uv1: wp.array(dtype=wp.vec2),
+             uv2: wp.array(dtype=wp.vec2), c0: wp.array(dtype=wp.vec3), c1: wp.array(dtype=wp.vec3),
+             c2: wp.array(dtype=wp.vec3), m0: wp.array(dtype=wp.vec3), m1: wp.array(dtype=wp.vec3),
+             m2: wp.array(dtype=wp.vec3), texels: wp.array(dtype=wp.vec3), info: wp.array(dtype=wp.vec3i),
+             normal_out: wp.array2d(dtype=wp.vec3), albedo: wp.array2d(dtype=wp.vec3)):
     i, j = wp.tid()
     f = face[i, j]
     if f < 0:
         return
     k = source[f]
-    if k == NO_TEXTURE:
+    if k == NO_TEXTURE and smooth[f] == 0:
         return
     a = e1[f]
     b = e2[f]
@@ -195,6 +198,7 @@ def _texture(face: wp.array2d(dtype=wp.int32), s: int, u0: int, v0: int, fx: wp.
     if den <= wp.float64(0.0):
         return
     total = wp.vec3(0.0, 0.0, 0.0)
+    shading = wp.vec3(0.0, 0.0, 0.0)
     count = int(0)
     for r in range(s):   # the pixel's subsample rays on the face's plane: its footprint, as the draw's subsamples
         for c in range(s):
@@ -206,50 +210,55 @@ def _texture(face: wp.array2d(dtype=wp.int32), s: int, u0: int, v0: int, fx: wp.
                 b2 = wp.float32((d00 * wp.dot(d, b) - d01 * wp.dot(d, a)) / den)
                 if k == CORNER_COLOURS:
                     total += c0[f] * (1.0 - b1 - b2) + c1[f] * b1 + c2[f] * b2
-                else:
+                elif k >= 0:
                     total += _lookup(texels, info[k], uv0[f] * (1.0 - b1 - b2) + uv1[f] * b1 + uv2[f] * b2)
+                shading += m0[f] * (1.0 - b1 - b2) + m1[f] * b1 + m2[f] * b2
                 count += 1
-    if count > 0:
+    if count > 0 and k != NO_TEXTURE:
         albedo[i, j] = total / wp.float32(count)
+    if count > 0 and smooth[f] != 0 and wp.length(shading) > 0.0:
+        normal_out[i, j] = wp.normalize(shading)
 
 
-class Textures:
-    """Faces whose albedo varies over them, on a device, for the G-buffer's albedo (`apply`): each face's source
-    (a texture's index, NO_TEXTURE or CORNER_COLOURS), its first vertex and edges (barycentrics), its corners'
-    texture coordinates and linear colours; the textures' linear RGB texels in one array, with each one's (offset,
-    width, height) (a black texel alone where there are none)."""
+class Varying:
+    """Faces whose albedo or normal varies over them, on a device, for the G-buffer (`apply`): each face's albedo
+    source (a texture's index, NO_TEXTURE or CORNER_COLOURS) and whether it is smooth, its first vertex and edges
+    (barycentrics), its corners' texture coordinates, linear colours and unit normals; the textures' linear RGB
+    texels in one array, with each one's (offset, width, height) (a black texel alone where there are none)."""
 
-    def __init__(self, triangles: np.ndarray, source: np.ndarray, uv: np.ndarray, corners: np.ndarray,
-                 textures: list[np.ndarray], device: str):
+    def __init__(self, triangles: np.ndarray, source: np.ndarray, smooth: np.ndarray, uv: np.ndarray,
+                 corners: np.ndarray, normals: np.ndarray, textures: list[np.ndarray], device: str):
         tri = np.asarray(triangles, np.float64)
-        uv, corners = np.asarray(uv, np.float32), np.asarray(corners, np.float32)
+        uv, corners, normals = (np.asarray(a, np.float32) for a in (uv, corners, normals))
         textures = textures or [np.zeros((1, 1, 3), np.float32)]
         sizes = [t.shape[0] * t.shape[1] for t in textures]
         offsets = np.concatenate([[0], np.cumsum(sizes)[:-1]]).astype(np.int64)
-        parts = [(np.asarray(source, np.int32), wp.int32), (tri[:, 0], wp.vec3d),
-                 (tri[:, 1] - tri[:, 0], wp.vec3d), (tri[:, 2] - tri[:, 0], wp.vec3d), (uv[:, 0], wp.vec2),
-                 (uv[:, 1], wp.vec2), (uv[:, 2], wp.vec2), (corners[:, 0], wp.vec3), (corners[:, 1], wp.vec3),
-                 (corners[:, 2], wp.vec3),
+        parts = [(np.asarray(source, np.int32), wp.int32), (np.asarray(smooth, np.int32), wp.int32),
+                 (tri[:, 0], wp.vec3d), (tri[:, 1] - tri[:, 0], wp.vec3d), (tri[:, 2] - tri[:, 0], wp.vec3d),
+                 *[(uv[:, c], wp.vec2) for c in range(3)], *[(corners[:, c], wp.vec3) for c in range(3)],
+                 *[(normals[:, c], wp.vec3) for c in range(3)],
                  (np.concatenate([t.reshape(-1, 3) for t in textures]).astype(np.float32), wp.vec3),
                  (np.array([[o, t.shape[1], t.shape[0]] for o, t in zip(offsets, textures)], np.int32), wp.vec3i)]
         self.arrays = [wp.array(np.ascontiguousarray(a), dtype=dtype, device=device) for a, dtype in parts]
 
-    def apply(self, face: wp.array, view: list, albedo: wp.array) -> None:
-        """Overwrites `albedo` at the pixels whose `face` has a varying albedo with its mean where the pixel's s x s
-        subsample rays (`view`: _view's arguments) meet that face's plane (the texture's bilinear lookups, or the
-        corners' colours interpolated): filtered over the pixel's footprint, as a supersampled render averages it."""
-        wp.launch(_texture, dim=face.shape, device=face.device, inputs=[face, *view, *self.arrays], outputs=[albedo])
+    def apply(self, face: wp.array, view: list, normal: wp.array, albedo: wp.array) -> None:
+        """Overwrites, at the pixels whose `face` varies, `albedo` with its mean where the pixel's s x s subsample
+        rays (`view`: _view's arguments) meet that face's plane (the texture's bilinear lookups, or the corners'
+        colours interpolated) and, on smooth faces, `normal` with the mean of the corners' normals interpolated
+        there, made unit: filtered over the pixel's footprint, as a supersampled render averages it."""
+        wp.launch(_varying, dim=face.shape, device=face.device, inputs=[face, *view, *self.arrays],
+                  outputs=[normal, albedo])
 
 
 class Faces:
     """A scene's faces on a device, for resolve and trace: a point of each face's plane, its unit normal (the
     triangle's winding: counter-clockwise seen from the front), its albedo; with `triangles` (F, 3, 3) also their
-    Warp mesh (trace's); with `textures` the albedo of the textured faces looked up per pixel."""
+    Warp mesh (trace's); with `varying` the albedo and normal of the faces over which they vary, per pixel."""
 
     def __init__(self, p0: np.ndarray, normal: np.ndarray, albedo: np.ndarray, device: str,
-                 triangles: np.ndarray | None = None, textures: Textures | None = None):
+                 triangles: np.ndarray | None = None, varying: Varying | None = None):
         self.device = device
-        self.textures = textures
+        self.varying = varying
         self.p0 = wp.array(np.asarray(p0, np.float64), dtype=wp.vec3d, device=device)
         self.normal = wp.array(np.asarray(normal, np.float64), dtype=wp.vec3d, device=device)
         self.albedo = wp.array(np.asarray(albedo, np.float32), dtype=wp.vec3, device=device)
@@ -270,13 +279,13 @@ def _view(s: int, origin: tuple[int, int], intr_hi, pose: np.ndarray) -> list:
 
 def _layers(kernel, h: int, w: int, faces: Faces, view: list, inputs: list) -> tuple[np.ndarray, ...]:
     """Launches a G-buffer kernel over h x w pixels (`inputs`, `view` (_view's) among them) and reads back
-    (coverage, depth, position, normal, albedo) in one copy, the textured faces' albedo looked up on the device
-    first."""
+    (coverage, depth, position, normal, albedo) in one copy, the varying faces' albedo and normals (Varying) made on
+    the device first."""
     out = Packed([((h, w), wp.float32)] * 2 + [((h, w), wp.vec3)] * 3, faces.device)
     face = wp.empty((h, w), dtype=wp.int32, device=faces.device)
     wp.launch(kernel, dim=(h, w), device=faces.device, inputs=inputs, outputs=[*out.arrays, face])
-    if faces.textures is not None:
-        faces.textures.apply(face, view, out.arrays[4])
+    if faces.varying is not None:
+        faces.varying.apply(face, view, out.arrays[3], out.arrays[4])
     return tuple(out.numpy())
 
 

@@ -30,7 +30,7 @@ import numpy as np
 
 from photoreg.config import GBUFFER_BACKENDS
 from photoreg.io.poses import check_pose
-from photoreg.kernels.gbuffer import NO_TEXTURE, Faces, Textures, resolve, trace
+from photoreg.kernels.gbuffer import Faces, Varying, resolve, trace
 from photoreg.render.scene import VirtualScene
 from photoreg.types import Intrinsics
 
@@ -190,12 +190,11 @@ class GBufferRenderer:
         length = np.linalg.norm(n, axis=1, keepdims=True)
         keep = length[:, 0] > 0                                       # degenerate faces cannot be hit
         albedo = np.stack([o.albedo for o in scene.objects])[owner[keep]]
-        fa = scene.face_albedo()
-        varying = (fa.source[keep] != NO_TEXTURE).any()
+        fa = scene.face_attributes()
         self.faces = Faces(tri[keep, 0], n[keep] / length[keep], albedo, device,   # on the resolve's device
                            tri[keep] if backend == "raycast" else None,
-                           Textures(tri[keep], fa.source[keep], fa.uv[keep], fa.corners[keep], fa.textures, device)
-                           if varying else None)
+                           Varying(tri[keep], fa.source[keep], fa.smooth[keep], fa.uv[keep], fa.corners[keep],
+                                   fa.normals[keep], fa.textures, device) if fa.varies()[keep].any() else None)
         if backend == "raycast":
             return
         self.pr = _import_pyrender()

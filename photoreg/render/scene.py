@@ -29,7 +29,8 @@ GRID_TRUNC_VOXELS = 4.0
 
 @dataclass
 class VirtualObject:
-    """One placed object: world-space triangles and its linear albedo: one colour, a texture or corner colours."""
+    """One placed object: world-space triangles, its linear albedo (one colour, a texture or corner colours) and, if
+    smooth, its vertex normals."""
 
     source: str                 # the mesh file, for messages
     vertices: np.ndarray        # (V, 3) float64 world positions
@@ -39,6 +40,7 @@ class VirtualObject:
     uv: np.ndarray | None = None       # (V, 2) float32 texture coordinates (origin at the image's bottom left)
     texture: np.ndarray | None = None  # (H, W, 3) float32 linear RGB albedo, row 0 the image's top
     corners: np.ndarray | None = None  # (F, 3, 3) float32 linear RGB albedo at each face's corners (vertex colours)
+    normals: np.ndarray | None = None  # (V, 3) float32 world unit vertex normals of a smooth object (objects.smooth)
 
     def local_vertices(self) -> np.ndarray:
         """(V, 3) vertices in the mesh file's own frame (the transform undone)."""
@@ -47,15 +49,22 @@ class VirtualObject:
 
 
 @dataclass
-class FaceAlbedo:
-    """Where each face of VirtualScene.triangles() takes its albedo: `source` (F,) a texture's index, NO_TEXTURE
-    (its object's one albedo) or CORNER_COLOURS; its corners' texture coordinates (F, 3, 2) and linear colours
-    (F, 3, 3), zero where unused; the textures."""
+class FaceAttributes:
+    """What varies over each face of VirtualScene.triangles(): `source` (F,) where it takes its albedo (a texture's
+    index, NO_TEXTURE: its object's one albedo, or CORNER_COLOURS), `smooth` (F,) whether its normal varies; its
+    corners' texture coordinates (F, 3, 2), linear colours (F, 3, 3) and unit normals (F, 3, 3), zero where unused;
+    the textures."""
 
     source: np.ndarray
+    smooth: np.ndarray
     uv: np.ndarray
     corners: np.ndarray
+    normals: np.ndarray
     textures: list[np.ndarray]
+
+    def varies(self) -> np.ndarray:
+        """(F,) whether a face's albedo or normal varies over it."""
+        return (self.source != NO_TEXTURE) | self.smooth
 
 
 @dataclass
@@ -81,9 +90,9 @@ class VirtualScene:
             base += len(o.vertices)
         return np.concatenate(verts), np.concatenate(faces), np.concatenate(owner)
 
-    def face_albedo(self) -> FaceAlbedo:
-        """Each face's albedo source, alongside triangles()."""
-        source, uv, corners, textures = [], [], [], []
+    def face_attributes(self) -> FaceAttributes:
+        """What varies over each face, alongside triangles()."""
+        source, smooth, uv, corners, normals, textures = [], [], [], [], [], []
         for o in self.objects:
             n = len(o.faces)
             if o.texture is not None:
@@ -91,9 +100,11 @@ class VirtualScene:
                 textures.append(o.texture)
             else:
                 source.append(np.full(n, NO_TEXTURE if o.corners is None else CORNER_COLOURS, np.int32))
+            smooth.append(np.full(n, o.normals is not None))
             uv.append(o.uv[o.faces] if o.uv is not None else np.zeros((n, 3, 2), np.float32))
             corners.append(o.corners if o.corners is not None else np.zeros((n, 3, 3), np.float32))
-        return FaceAlbedo(np.concatenate(source), np.concatenate(uv), np.concatenate(corners), textures)
+            normals.append(o.normals[o.faces] if o.normals is not None else np.zeros((n, 3, 3), np.float32))
+        return FaceAttributes(*(np.concatenate(a) for a in (source, smooth, uv, corners, normals)), textures)
 
 
 def object_transform(obj: ObjectConfig) -> np.ndarray:
@@ -135,16 +146,20 @@ def load_object(obj: ObjectConfig) -> VirtualObject:
         raise ValueError(f"{path}: mesh has non-finite vertices")
     v = np.asarray(mesh.vertices, np.float64) @ T[:3, :3].T + T[:3, 3]
     faces = np.asarray(mesh.faces, np.int64)
+    normals = None
+    if obj.smooth:   # the file's vertex normals, else trimesh's (the mean of the faces' round each vertex), turned
+        normals = np.asarray(mesh.vertex_normals, np.float64) @ T[:3, :3].T
+        normals = (normals / np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)).astype(np.float32)
     if not textured:
-        return VirtualObject(str(path), v, faces, albedo.astype(np.float32), T)
+        return VirtualObject(str(path), v, faces, albedo.astype(np.float32), T, normals=normals)
     kind = getattr(mesh.visual, "kind", None)
     if kind in ("vertex", "face"):   # colours at the vertices (or per face), 8-bit sRGB
         colours = mesh.visual.vertex_colors[faces] if kind == "vertex" else np.repeat(
             np.asarray(mesh.visual.face_colors)[:, None], 3, axis=1)
         corners = srgb_to_linear(np.ascontiguousarray(np.asarray(colours, np.uint8)[..., :3]))
-        return VirtualObject(str(path), v, faces, corners.mean(axis=(0, 1)), T, corners=corners)
+        return VirtualObject(str(path), v, faces, corners.mean(axis=(0, 1)), T, corners=corners, normals=normals)
     uv, texture = base_colour_texture(mesh, path)
-    return VirtualObject(str(path), v, faces, texture.mean(axis=(0, 1)), T, uv, texture)
+    return VirtualObject(str(path), v, faces, texture.mean(axis=(0, 1)), T, uv, texture, normals=normals)
 
 
 def base_colour_texture(mesh, path: Path) -> tuple[np.ndarray, np.ndarray]:

@@ -266,8 +266,8 @@ def session_options(path: str | Path) -> dict:
                "reconstruction": {k: getattr(s.reconstruction, k) for k in CLIENT_RECONSTRUCTION_KEYS}}
     if s.objects:
         options["objects"] = [{"mesh": Path(o.mesh).name, "position": list(o.position), "rotation": list(o.rotation),
-                               "scale": o.scale, "albedo": o.albedo if isinstance(o.albedo, str) else list(o.albedo)}
-                              for o in s.objects]
+                               "scale": o.scale, "albedo": o.albedo if isinstance(o.albedo, str) else list(o.albedo),
+                               "smooth": o.smooth} for o in s.objects]
     if not s.recording.use_poses:
         options["track"] = True
     return options
