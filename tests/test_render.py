@@ -860,7 +860,7 @@ def test_frames_holding_one_estimate_share_its_light():
                                                                 np.array(sun["irradiance"]), 0.05).residual)
 
 
-@pytest.mark.parametrize("shadows", ["voxel", "shadowmap", "neural_soft"])
+@pytest.mark.parametrize("shadows", ["voxel", "shadowmap", "neural_soft", "neural_shadowmap"])
 def test_region_holds_the_shadow_not_every_near_sample(tmp_path, shadows):
     """A renderer's region (what composite blends) is the box of what it changes: the object's window and the pixels
     interpolated from the samples it darkens (ratio below 1; composite.changed_box), not every sample within reach of

@@ -16,7 +16,7 @@ connections with `--threads`).
 
 The `raycast` backend (render.gbuffer) makes the same layers with no draw and no OpenGL: each subsample's ray meets the
 faces in a Warp mesh on the renderer's device (photoreg.kernels.gbuffer.trace); the edges' coverage then comes from the
-subsamples' exact rays instead of the rasteriser's rules and MSAA.
+subsamples' exact rays instead of the rasteriser's rules.
 """
 from __future__ import annotations
 

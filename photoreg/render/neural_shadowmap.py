@@ -19,7 +19,7 @@ import numpy as np
 
 from photoreg.lighting import sh
 from photoreg.lighting.parametric import receiver_opacity
-from photoreg.render.composite import Layers, RenderInput, shade, upsample_ratio
+from photoreg.render.composite import Layers, RenderInput, changed_box, shade, upsample_ratio
 from photoreg.render.shadow_buffers import SM_RESOLUTION, shadow_buffers
 from photoreg.render.shadowmap import fit_shadow_map
 
@@ -88,7 +88,7 @@ def render_neural_shadowmap(inp: RenderInput) -> Layers:
     notes = list(light.notes)
     if float(light.opacity.max()) <= 0.0:
         notes.append("neural_shadowmap: no directional light in F, no shadows")
-        return Layers(colour, gb.coverage, np.ones(inp.camera.shape, np.float32), notes)
+        return Layers(colour, gb.coverage, np.ones(inp.camera.shape, np.float32), notes, gb.window)
     verts, faces, _ = inp.scene.triangles()
     smap = fit_shadow_map(verts, faces, light.direction, inp.grid.device, SM_RESOLUTION)
     buf = shadow_buffers(maps, gb, light, smap)
@@ -98,8 +98,9 @@ def render_neural_shadowmap(inp: RenderInput) -> Layers:
     factor[buf.valid] = 1.0 - receiver_opacity(light, buf.normal[buf.valid]) * (1.0 - vis[buf.valid, None])
     real = buf.valid & ~buf.virtual
     ratio_s = _fill_from_real(np.where(real[..., None], factor, 1.0), real, maps.valid)
-    ratio = upsample_ratio(ratio_s, maps.valid & (ratio_s.min(-1) < 1.0 - UNCHANGED), s, (H, W))
+    shadowed = maps.valid & (ratio_s.min(-1) < 1.0 - UNCHANGED)
+    ratio = upsample_ratio(ratio_s, shadowed, s, (H, W))
     if covered.any():
         full = upsample_ratio(factor, buf.valid, s, (H, W))
         colour[covered] *= full[covered]
-    return Layers(colour, gb.coverage, ratio, notes)
+    return Layers(colour, gb.coverage, ratio, notes, changed_box(inp, shadowed))   # the composite blends that box
