@@ -112,6 +112,17 @@ def test_objects_name_meshes_in_the_server_s_folder(tmp_path):
         with pytest.raises(ProtocolError, match=re.escape(says)) as e:
             hello(mesh)
         assert e.value.code == "bad_field" and "objects[0].mesh" in e.value.message
+    textured = parse_hello(hello_message(K, {"objects": [{**obj, "albedo": "texture", "smooth": True}]}), "cpu",
+                           Limits(), tmp_path / "meshes").session.objects[0]   # the mesh's own colour, smooth normals
+    assert (textured.albedo, textured.smooth) == ("texture", True)
+    session = tmp_path / "textured.toml"                               # what a client asks for from its session file
+    session.write_text(f'[recording]\npath = "{REPO / "data" / "demo"}"\n\n[[objects]]\n'
+                       f'mesh = "{tmp_path / "meshes" / "bunny.obj"}"\nalbedo = "texture"\nsmooth = true\n')
+    sent = session_options(session)["objects"][0]
+    assert (sent["mesh"], sent["albedo"], sent["smooth"]) == ("bunny.obj", "texture", True)
+    with pytest.raises(ProtocolError, match="albedo") as e:
+        parse_hello(hello_message(K, {"objects": [{**obj, "albedo": "wood"}]}), "cpu", Limits(), tmp_path / "meshes")
+    assert e.value.code == "bad_field"
     with pytest.raises(ProtocolError, match="no mesh folder"):
         hello("bunny.obj", meshes=None)
     with pytest.raises(ProtocolError, match="hello.composite"):
