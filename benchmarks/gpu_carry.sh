@@ -7,13 +7,14 @@
 #   .gl/*.deb           libEGL and its kin (glvnd; open3d's CUDA build loads libEGL.so.1, pyrender draws through EGL):
 #                       unpacked there with `dpkg -x DEB /`, no apt
 #   .carry/data         the shared data's first FRAMES (default 50) frames of TUM fr1_rpy and the bunny's mesh
+#   .carry/pytest       pytest's wheels (gpu_run.sh's gbcheck step runs tests there; carry it with the data)
 #   .olds/photoreg      the package at commit OLD (default HEAD) for gpu_run.sh's A/B steps (OLD=/tmp/olds there)
 # The folders are kept out of git (.git/info/exclude). Then, one call per chunk, back to back (the machine goes back
 # some 30 s after a call, its /tmp with it):
 #   run(carry=[".carry/c01"], command="mkdir -p /tmp/chunks && cp .carry/c01/* /tmp/chunks/")
 #   run(carry=[".carry/cNN"], command="cp .carry/cNN/* /tmp/chunks/")                      (c02 ... the one before last)
 #   run(carry=[".carry/cLAST"], command="cp .carry/cLAST/* /tmp/chunks/ && python3 /tmp/chunks/install.py")
-#   run(carry=[".carry/data", ".gl", ".olds"], command="mkdir -p /tmp/data && cp -r .carry/data/* /tmp/data/ &&
+#   run(carry=[".carry/data", ".carry/pytest", ".gl", ".olds"], command="mkdir -p /tmp/data && cp -r .carry/data/* /tmp/data/ &&
 #       for f in .gl/*.deb; do dpkg -x $f /; done; ldconfig; cp -r .olds /tmp/olds;
 #       PHOTOREG_DATA=/tmp/data OLD=/tmp/olds bash benchmarks/gpu_run.sh /tmp/data/recordings/tum_fr1_rpy $OUT STEP...")
 # usage (from the repository root): bash benchmarks/gpu_carry.sh   (PHOTOREG_DATA must name the shared data)
@@ -57,6 +58,8 @@ print("installed into /tmp/site:", len(glob.glob("/tmp/site/*.dist-info")), "pac
 ''')
 PY
 rm -rf .carry/wheels
+python3 -m pip download -q --no-deps --only-binary=:all: --python-version 3.12 --implementation cp --platform any \
+  -d .carry/pytest pytest pluggy iniconfig packaging
 echo "EGL packages ..."
 ( cd .gl && apt-get download libegl1 libglvnd0 libgl1 libglx0 libopengl0 libgles2 libegl-mesa0 libgbm1 libglapi-mesa \
     libwayland-client0 libwayland-server0 libxcb-randr0 libx11-xcb1 libxcb-dri3-0 libxcb-present0 libxcb-sync1 \

@@ -53,10 +53,10 @@
 #              alternating, GBUFFER_ROUNDS (default "1 2") rounds, at stride 1 / 169 / 4 and 4 / 64 / 3, `--every 1000`
 #              (held) and `--async` (OUTDIR/gbuffer.json)
 #   gbcheck    the G-buffer tests of tests/test_render.py on this machine (pyrender on NVIDIA's EGL; the raycast and
-#              texture kernels on the CPU and on CUDA; pytest's wheels carried in .carry/pytest), then
-#              benchmarks/gbuffer_check.py on TUM
-#              with the bunny and the demo's session, 8 frames each on CUDA (OUTDIR/gbuffer_check.jsonl, the frames
-#              differing most in OUTDIR/gbuffer_check_*.npz)
+#              varying-attribute kernels (textures, vertex colours, smooth normals) on the CPU and on CUDA; pytest's
+#              wheels carried in .carry/pytest), then benchmarks/gbuffer_check.py on TUM with the bunny and the demo's
+#              session, 8 frames each on CUDA (OUTDIR/gbuffer_check.jsonl, the frames differing most in
+#              OUTDIR/gbuffer_check_*.npz)
 #   sweep      `photoreg bench sweep --device cuda` on SWEEP_SCENES (recordings with lighting_gt.json
 #              made here with `photoreg synth`); VOXELS (default 0.01,0.02) restricts it to fit one call
 #   batch      benchmarks/batch_scale.sh: `photoreg batch` over the worker counts WORKERS (its other variables too;
@@ -283,7 +283,8 @@ for step in "$@"; do
       merge /tmp/gbuffer "$out/gbuffer.json" ;;
     gbcheck)
       [ -d .carry/pytest ] && python3 -m pip install -q --no-index --no-deps --target /tmp/site .carry/pytest/*.whl
-      python3 -m pytest -q -p no:cacheprovider tests/test_render.py -k "raycast or egl or window_holds or texture" 2>&1 \
+      python3 -m pytest -q -p no:cacheprovider tests/test_render.py \
+        -k "raycast or egl or window_holds or texture or colours or smooth" 2>&1 \
         | tail -15 | tee "$out/gbuffer_pytest.txt" || true   # the checks below whatever the tests say
       for session in sessions/tum_fr1_rpy.toml data/demo/session.toml; do
         python3 benchmarks/gbuffer_check.py $session 0:8 cuda "$out/gbuffer_check_${session//\//_}.npz" \
