@@ -19,6 +19,7 @@ from typing import Callable
 import numpy as np
 from trimesh.exchange.obj import export_obj
 
+from ..config import ALBEDO_TEXTURE
 from ..io.atomic import atomic_path, write_json, write_text
 from ..io.images import linear_to_srgb, write_exr, write_png_rgb
 from ..io.native import NativeWriter, frame_name
@@ -130,7 +131,7 @@ def _session_toml(obj) -> str:
     """session.toml inserting the virtual object into this recording (DESIGN.md session file)."""
     def vec(v):
         return "[" + ", ".join(repr(float(x)) for x in v) + "]"
-    albedo = '"texture"' if obj.textured else vec(obj.albedo)
+    albedo = f'"{ALBEDO_TEXTURE}"' if obj.textured else vec(obj.albedo)
     return (f"# Virtual object of the insert/ ground truth, placed in this recording (written by photoreg synth).\n"
             f"[recording]\npath = \".\"\nformat = \"native\"\n\n"
             f"[[objects]]\nmesh = \"object.obj\"\nposition = {vec(obj.position)}\nrotation = {vec(obj.rotation_deg)}\n"

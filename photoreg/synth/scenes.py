@@ -35,10 +35,10 @@ def insert_texture() -> np.ndarray:
     return np.kron(blocks, np.ones((8, 8, 1))).astype(np.uint8)
 
 
-def textured_box(extents) -> trimesh.Trimesh:
-    """A box (base on z = 0) whose every face carries the whole texture: its triangles' vertices unmerged, each
-    vertex's texture coordinates its two coordinates across its face's normal, scaled to [0, 1] (v up, OBJ's
-    convention; the image's row 0 at v = 1)."""
+def textured_box(extents, image=None) -> trimesh.Trimesh:
+    """A box (base on z = 0) whose every face carries the whole texture (`image`, PIL, for an export): its triangles'
+    vertices unmerged, each vertex's texture coordinates its two coordinates across its face's normal, scaled to
+    [0, 1] (v up, OBJ's convention; the image's row 0 at v = 1)."""
     box = trimesh.creation.box(extents=extents)
     box.apply_translation([0, 0, extents[2] / 2])
     vertices = box.vertices[box.faces].reshape(-1, 3)
@@ -47,7 +47,7 @@ def textured_box(extents) -> trimesh.Trimesh:
     lo, size = box.bounds[0], np.asarray(extents, np.float64)
     uv = (np.take_along_axis(vertices, across, 1) - lo[across]) / size[across]
     return trimesh.Trimesh(vertices, np.arange(len(vertices)).reshape(-1, 3), process=False,
-                           visual=trimesh.visual.TextureVisuals(uv=uv))
+                           visual=trimesh.visual.TextureVisuals(uv=uv, image=image))
 
 
 @dataclass
@@ -149,9 +149,7 @@ class VirtualObject:
         if self.textured:
             from PIL import Image
 
-            m = textured_box((1.0, 1.0, 1.0))
-            m.visual = trimesh.visual.TextureVisuals(uv=m.visual.uv, image=Image.fromarray(insert_texture()))
-            return m
+            return textured_box((1.0, 1.0, 1.0), Image.fromarray(insert_texture()))
         m = trimesh.creation.box(extents=(1.0, 1.0, 1.0))
         m.apply_translation([0, 0, 0.5])
         return m
