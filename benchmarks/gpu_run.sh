@@ -57,6 +57,9 @@
 #              wheels carried in .carry/pytest), then benchmarks/gbuffer_check.py on TUM with the bunny and the demo's
 #              session, 8 frames each on CUDA (OUTDIR/gbuffer_check.jsonl, the frames differing most in
 #              OUTDIR/gbuffer_check_*.npz)
+#   meshgt     MESH_RECS (recordings made with `photoreg synth ... --insert-mesh FILE`, carried over): `photoreg run
+#              --device cuda` of each one's session with the G-buffer drawn (pyrender) and ray-traced, smooth as written
+#              and flat (objects.smooth = false), each scored with `photoreg score --composite` (OUTDIR/meshgt_*.json)
 #   sweep      `photoreg bench sweep --device cuda` on SWEEP_SCENES (recordings with lighting_gt.json
 #              made here with `photoreg synth`); VOXELS (default 0.01,0.02) restricts it to fit one call
 #   batch      benchmarks/batch_scale.sh: `photoreg batch` over the worker counts WORKERS (its other variables too;
@@ -289,6 +292,19 @@ for step in "$@"; do
       for session in sessions/tum_fr1_rpy.toml data/demo/session.toml; do
         python3 benchmarks/gbuffer_check.py $session 0:8 cuda "$out/gbuffer_check_${session//\//_}.npz" \
           2>/dev/null | tee -a "$out/gbuffer_check.jsonl"
+      done ;;
+    meshgt)
+      for r in $MESH_RECS; do
+        name=$(basename "$r")
+        sed 's/^smooth = true$/smooth = false/' "$r/session.toml" > "$r/session_flat.toml"
+        for g in pyrender raycast; do
+          for v in session session_flat; do
+            python3 -m photoreg run "$r/$v.toml" --device cuda --gbuffer $g --out "/tmp/meshgt/${name}_${g}_$v" \
+              2>&1 | tail -2
+            python3 -m photoreg score --composite --gt "$r" "/tmp/meshgt/${name}_${g}_$v" \
+              --json "$out/meshgt_${name}_${g}_$v.json" | tail -9
+          done
+        done
       done ;;
     sweep)
       # The CPU rows of benchmarks/speed_error.csv are kept: copy the merged table and plot back from OUTDIR.

@@ -84,6 +84,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="times the chosen exposure: above 1 the brightest surfaces saturate, as a camera's do")
     p.add_argument("--insert-texture", action="store_true",
                    help="texture the inserted cube (its session then asks for albedo = \"texture\")")
+    p.add_argument("--insert-mesh", help="insert this mesh file (PLY/OBJ/OFF/GLB, scaled to a largest side of "
+                                         "0.2 m, smooth normals) instead of the cube")
 
     p = sub.add_parser("score", help="official accuracy metrics of a run against ground truth")
     p.add_argument("out", help="output folder of a run (holds lighting.jsonl)")
@@ -201,6 +203,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="JSON rows per device and ground-truth spp go here")
     b.add_argument("--md", default="benchmarks/renderers.md", help="report rebuilt from every device's rows")
     b.add_argument("--plot", default="benchmarks/renderers.png", help="ms against si-RMSE plot")
+    b.add_argument("--insert-mesh", help="insert this mesh file instead of the cube (photoreg synth --insert-mesh); "
+                                         "its rows go to a JSON file of their own")
 
     p = sub.add_parser("train", help="train learned renderers' weights for a session's objects")
     tsub = p.add_subparsers(dest="train_kind", required=True)

@@ -38,3 +38,23 @@ def test_bench_renderers_tiny(tmp_path):
     assert f"{run['device_name']} (cpu), ground truth at 4 spp" in md
     assert all(f"| tabletop | {n} |" in md for n in RENDERERS)
     assert (tmp_path / "r.png").stat().st_size > 1000
+
+
+def test_bench_renderers_inserted_mesh(tmp_path):
+    """--insert-mesh: the generated insert scenes hold the mesh instead of the cube, and its rows go to a JSON file
+    and a report section of their own."""
+    pytest.importorskip("mitsuba")
+    import trimesh
+
+    mesh = tmp_path / "ico.obj"
+    mesh.write_text(trimesh.exchange.obj.export_obj(trimesh.creation.icosphere(subdivisions=1)))
+    res, scenes = tmp_path / "results", tmp_path / "scenes"
+    rc = main(["bench", "renderers", "--scenes", "plane", "--renderers", "none,voxel", "--size", "64x48", "--frames",
+               "3", "--spp", "4", "--device", "cpu", "--synth-dir", str(scenes), "--results-dir", str(res),
+               "--md", str(tmp_path / "r.md"), "--plot", str(tmp_path / "r.png"), "--insert-mesh", str(mesh)])
+    assert rc == 0
+    run = json.loads((res / "renderers_cpu_4spp_ico.json").read_text())
+    assert run["insert"] == "ico.obj" and {r["renderer"] for r in run["rows"]} >= {"none", "voxel"}
+    assert "--insert-mesh" in json.loads((scenes / "plane-64x48-3f-4spp-inserts-ico" / "scene.json").read_text())[
+        "command"]
+    assert "ground truth at 4 spp, inserted ico.obj" in (tmp_path / "r.md").read_text()

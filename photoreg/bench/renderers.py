@@ -126,6 +126,8 @@ def bench_scene(kind: str, orbit: Path, static: Path, device: str, renderers: di
 
 def write_report(results_dir: Path, md: Path, png: Path) -> None:
     """benchmarks/renderers.md and the PNG from every renderers_*.json in `results_dir`."""
+    from ..synth.scenes import INSERT_MESH_SCALE
+
     runs = [json.loads(p.read_text()) for p in sorted(results_dir.glob(RESULTS_GLOB))]
     lines = ["# Shadow renderers side by side", "",
              "Written by `photoreg bench renderers` from benchmarks/results/renderers_*.json. Every renderer "
@@ -139,7 +141,8 @@ def write_report(results_dir: Path, md: Path, png: Path) -> None:
              "renderer can match; 'baseline, object path-traced with other seeds' pastes the object rendered "
              "again with other seeds: the same baseline as an exact renderer would score it.", ""]
     for run in runs:
-        lines += [f"## {run['device_name']} ({run['device']}), ground truth at {run['spp']} spp", "",
+        lines += [f"## {run['device_name']} ({run['device']}), ground truth at {run['spp']} spp, inserted "
+                  + (f"{run['insert']} (largest side {INSERT_MESH_SCALE:g} m, smooth normals)" if run.get("insert") else "cube"), "",
                   f"Command: `{run['command']}`; {run['date']}; Warp {run['warp']}, Open3D {run['open3d']}; "
                   f"{run['size']}, {run['frames']} frames per recording, {run['spp']} spp."
                   + (f" Note: {run['note']}." if run.get("note") else ""), "",
@@ -162,7 +165,8 @@ def write_report(results_dir: Path, md: Path, png: Path) -> None:
         for j, name in enumerate(names):
             rs = [r for r in run["rows"] if r["renderer"] == name]
             ax.scatter([r["ms_mean"] for r in rs], [r["si_rmse"] for r in rs], marker=markers[k % len(markers)],
-                       color=f"C{j}", label=f"{name} ({run['device_name']}, {run['spp']} spp)")
+                       color=f"C{j}", label=f"{name} ({run['device_name']}, {run['spp']} spp"
+                                           + (f", {run['insert']})" if run.get("insert") else ")"))
     ax.set_xscale("log")
     ax.set_xlabel("renderer ms per frame (log)")
     ax.set_ylabel("composite si-RMSE in the ROI (lower is better)")
@@ -198,14 +202,17 @@ def renderers_command(args) -> int:
     device = resolve_device(args.device or "auto")
     rows = []
     for kind in args.scenes.split(","):
-        orbit = cached_scene(cache, kind, w, h, args.frames, args.spp, inserts="auto", log=log)
+        orbit = cached_scene(cache, kind, w, h, args.frames, args.spp, inserts="auto", log=log,
+                             insert_mesh=args.insert_mesh)
         static = cached_scene(cache, kind, w, h, args.frames, args.spp, camera="static", log=log)
         rows += bench_scene(kind, orbit, static, device, renderers)
     results = Path(args.results_dir)
     run = {"device": device, "device_name": device_name(device), "warp": wp.__version__, "open3d": o3d.__version__,
            "command": "photoreg " + " ".join(sys.argv[1:]), "date": datetime.date.today().isoformat(),
-           "size": f"{w}x{h}", "frames": args.frames, "spp": args.spp, "rows": rows}
-    write_json(results / f"renderers_{device.split(':')[0]}_{args.spp}spp.json", run)
+           "size": f"{w}x{h}", "frames": args.frames, "spp": args.spp, "rows": rows,
+           "insert": Path(args.insert_mesh).name if args.insert_mesh else None}
+    mesh = f"_{Path(args.insert_mesh).stem}" if args.insert_mesh else ""
+    write_json(results / f"renderers_{device.split(':')[0]}_{args.spp}spp{mesh}.json", run)
     write_report(results, Path(args.md), Path(args.plot))
     for r in rows:
         ms = "-" if r["ms_mean"] is None else f"{r['ms_mean']:8.1f}"

@@ -10,14 +10,16 @@ SCENE_CACHE = Path.home() / ".cache" / "photoreg" / "bench_scenes"
 
 
 def cached_scene(cache: Path, kind: str, width: int, height: int, frames: int, spp: int, camera: str = "orbit",
-                 inserts: str = "none", log: Callable[[str], None] | None = None) -> Path:
+                 inserts: str = "none", log: Callable[[str], None] | None = None, insert_mesh: str | None = None) -> Path:
     """The recording of scene `kind` with these settings in `cache` (folder named after them), rendered
-    into a .partial folder and renamed when missing, so an interrupted run leaves no half scene behind."""
+    into a .partial folder and renamed when missing, so an interrupted run leaves no half scene behind.
+    `insert_mesh`: a mesh file inserted instead of the cube (`photoreg synth --insert-mesh`)."""
     from ..synth.generate import SynthConfig, generate
 
     name = f"{kind}-{width}x{height}-{frames}f-{spp}spp"
     name += "" if camera == "orbit" else f"-{camera}"
     name += "" if inserts == "none" else "-inserts"
+    name += f"-{Path(insert_mesh).stem}" if insert_mesh and inserts != "none" else ""
     folder = Path(cache) / name
     if not (folder / "lighting_gt.json").is_file():
         if folder.exists() and any(folder.iterdir()):
@@ -28,7 +30,8 @@ def cached_scene(cache: Path, kind: str, width: int, height: int, frames: int, s
         if tmp.exists():
             shutil.rmtree(tmp)
         generate(SynthConfig(scene=kind, out=str(tmp), frames=frames, width=width, height=height, spp=spp,
-                             camera=camera, insert_frames=inserts), log=None)
+                             camera=camera, insert_frames=inserts,
+                             insert_mesh=insert_mesh if inserts != "none" else None), log=None)
         if folder.exists():
             folder.rmdir()
         tmp.rename(folder)

@@ -27,7 +27,7 @@ from .cameras import CAMERA_PATHS, camera_path, default_intrinsics
 from .depth import kinect_like
 from .environment import ProceduralSky, emitter_rotation, environment_sh, load_environment
 from .render import MitsubaScene, mitsuba
-from .scenes import SCENE_KINDS, build_scene
+from .scenes import INSERT_MESH_SCALE, SCENE_KINDS, build_scene
 
 GENERATOR_VERSION = "1"
 FPS = 30.0  # frame i is at i / FPS seconds
@@ -54,6 +54,7 @@ class SynthConfig:
     mesh: str | None = None  # mesh file for the tabletop's mesh object (default: a procedural cylinder)
     overexpose: float = 1.0  # times the chosen exposure (> 1: the brightest surfaces saturate, as a camera's do)
     insert_texture: bool = False  # the inserted cube textured (scenes.insert_texture), its session albedo = "texture"
+    insert_mesh: str | None = None  # mesh file inserted instead of the cube (largest side scenes.INSERT_MESH_SCALE)
     sky: ProceduralSky = field(default_factory=ProceduralSky)
 
     def command_line(self) -> str:
@@ -66,6 +67,7 @@ class SynthConfig:
         args += ["--mesh", self.mesh] if self.mesh else []
         args += ["--overexpose", f"{self.overexpose:g}"] if self.overexpose != 1.0 else []
         args += ["--insert-texture"] * self.insert_texture
+        args += ["--insert-mesh", self.insert_mesh] if self.insert_mesh else []
         return shlex.join(args)
 
     @property
@@ -89,6 +91,10 @@ class SynthConfig:
             raise ValueError(f"--overexpose {self.overexpose}: need a positive factor")
         if self.mesh and self.scene != "tabletop":
             raise ValueError(f"--mesh is used by the tabletop scene only (scene is {self.scene!r})")
+        if self.insert_mesh and self.insert_texture:
+            raise ValueError("--insert-texture textures the inserted cube: it does not combine with --insert-mesh")
+        if self.insert_mesh and not Path(self.insert_mesh).is_file():
+            raise FileNotFoundError(f"--insert-mesh {self.insert_mesh}: no such mesh file")
         if self.env != "procedural" and not Path(self.env).is_file():
             raise FileNotFoundError(f"--env {self.env}: no such HDR file (give a .hdr/.exr path or 'procedural')")
         insert_indices(self.insert_frames, self.frames)
@@ -132,10 +138,11 @@ def _session_toml(obj) -> str:
     def vec(v):
         return "[" + ", ".join(repr(float(x)) for x in v) + "]"
     albedo = f'"{ALBEDO_TEXTURE}"' if obj.textured else vec(obj.albedo)
+    smooth = "smooth = true\n" if obj.mesh else ""   # Mitsuba interpolates a mesh's vertex normals
     return (f"# Virtual object of the insert/ ground truth, placed in this recording (written by photoreg synth).\n"
             f"[recording]\npath = \".\"\nformat = \"native\"\n\n"
             f"[[objects]]\nmesh = \"object.obj\"\nposition = {vec(obj.position)}\nrotation = {vec(obj.rotation_deg)}\n"
-            f"scale = {float(obj.scale)!r}\nalbedo = {albedo}\n\n"
+            f"scale = {float(obj.scale)!r}\nalbedo = {albedo}\n{smooth}\n"
             f"[render]\nshadows = \"voxel\"\n\n[output]\ndir = \"out\"\n")
 
 
@@ -144,6 +151,8 @@ def _world(cfg: SynthConfig):
     poses) of a config."""
     layout = build_scene(cfg.scene, cfg.mesh)
     layout.insert = replace(layout.insert, textured=cfg.insert_texture)
+    if cfg.insert_mesh:
+        layout.insert = replace(layout.insert, mesh=str(Path(cfg.insert_mesh).resolve()), scale=INSERT_MESH_SCALE)
     env_image, env_desc = load_environment(cfg.env, cfg.sky)
     return (layout, env_image, env_desc, emitter_rotation(cfg.yaw), default_intrinsics(cfg.width, cfg.height),
             camera_path(cfg.camera, cfg.frames, layout.rig, cfg.seed))
@@ -216,8 +225,9 @@ def generate(cfg: SynthConfig, log: Callable[[str], None] | None = print) -> Pat
     writer.write_lighting_gt(sh, exposure=exposure)
 
     if inserts:
-        text, files = export_obj(layout.insert.local_mesh(), include_normals=False, return_texture=True,
-                                 mtl_name="object.mtl")
+        # a mesh's vertex normals written out: the session's smooth shading takes the ones Mitsuba interpolates
+        text, files = export_obj(layout.insert.local_mesh(), include_normals=bool(cfg.insert_mesh),
+                                 return_texture=True, mtl_name="object.mtl")
         for name, data in files.items():   # a textured cube's material and image, beside it
             with atomic_path(out / name) as tmp:
                 tmp.write_bytes(data)
@@ -247,8 +257,10 @@ def generate(cfg: SynthConfig, log: Callable[[str], None] | None = print) -> Pat
                   "noise": ("sigma = 1.2 mm + 1.9 mm * (z - 0.4)^2, holes where a 3x3 neighbourhood spans "
                             "> 4% of z or touches a missing pixel, quantised to 1/depth_scale m") if cfg.noise else None},
         "insert": {"frames": inserts, "mesh": "object.obj" if inserts else None,
-                   "object": {**asdict(layout.insert), "type": "box (unit cube, base on z=0)"
-                              + (", every face textured (object.mtl)" if cfg.insert_texture else "")},
+                   "object": {**asdict(layout.insert), "type": (
+                       "mesh (the file's, largest side 1, base on z=0; smooth normals)" if cfg.insert_mesh else
+                       "box (unit cube, base on z=0)" + (", every face textured (object.mtl)" if cfg.insert_texture
+                                                         else ""))},
                    "images": "insert/NNNNNN.png (sRGB) and .exr (linear, exposure applied); insert_mask/ 255 = virtual object"},
     })
     total = time.perf_counter() - t_start
@@ -263,6 +275,6 @@ def synth_command(args) -> int:
     cfg = SynthConfig(scene=args.scene, out=args.out, frames=args.frames, width=width, height=height, spp=args.spp,
                       env=args.env, yaw=args.yaw, seed=args.seed, camera=args.camera, direct_only=args.direct_only,
                       insert_frames=args.insert_frames, noise=not args.no_noise, mesh=args.mesh,
-                      overexpose=args.overexpose, insert_texture=args.insert_texture)
+                      overexpose=args.overexpose, insert_texture=args.insert_texture, insert_mesh=args.insert_mesh)
     generate(cfg, log=lambda msg: print(msg, flush=True))
     return 0

@@ -133,19 +133,28 @@ class OrbitRig:
                 "azimuth_deg": self.azimuth_deg, "arc_deg": self.arc_deg, "wobble": self.wobble}
 
 
+INSERT_MESH_SCALE = 0.2   # largest side (m) of an inserted mesh (`photoreg synth --insert-mesh`)
+
+
 @dataclass(frozen=True)
 class VirtualObject:
-    """The object added in insert frames: a unit cube (base on z = 0) placed as in DESIGN.md's
-    [[objects]]: world = R @ (scale * v) + position, R = Rotation.from_euler('xyz', rotation_deg)."""
+    """The object added in insert frames: a unit cube (base on z = 0), or a mesh file's object scaled to a
+    largest side of 1 as load_mesh makes it, placed as in DESIGN.md's [[objects]]:
+    world = R @ (scale * v) + position, R = Rotation.from_euler('xyz', rotation_deg). Mitsuba renders a mesh
+    with its vertex normals interpolated (the session's objects.smooth)."""
 
     position: tuple[float, float, float]
     rotation_deg: tuple[float, float, float] = (0.0, 0.0, 25.0)
     scale: float = 0.12
     albedo: tuple[float, float, float] = (0.7, 0.5, 0.3)
     textured: bool = False   # insert_texture() over every face instead of `albedo`
+    mesh: str | None = None  # mesh file instead of the cube
 
     def local_mesh(self) -> trimesh.Trimesh:
-        """The unit cube in its own frame; textured: with its texture coordinates and image (OBJ export)."""
+        """The object in its own frame at scale 1; a textured cube with its texture coordinates and image (OBJ
+        export)."""
+        if self.mesh:
+            return load_mesh(self.mesh, 1.0)
         if self.textured:
             from PIL import Image
 
@@ -155,9 +164,11 @@ class VirtualObject:
         return m
 
     def scene_object(self) -> SceneObject:
-        s = self.scale
-        return SceneObject("virtual_box", "box", (s, s, s), placement(self.position, rotation_xyz_deg=self.rotation_deg),
-                           self.albedo, texture=insert_texture() if self.textured else None)
+        s, T = self.scale, placement(self.position, rotation_xyz_deg=self.rotation_deg)
+        if self.mesh:
+            return SceneObject("virtual_mesh", "mesh", (s,), T, self.albedo, source=self.mesh)
+        return SceneObject("virtual_box", "box", (s, s, s), T, self.albedo,
+                           texture=insert_texture() if self.textured else None)
 
 
 @dataclass
