@@ -34,7 +34,7 @@ from photoreg.synth.environment import (ProceduralSky, emitter_rotation, environ
                                         load_environment, node_directions)
 from photoreg.synth.generate import SynthConfig, generate, rerender_inserts  # noqa: E402
 from photoreg.synth.render import MitsubaScene  # noqa: E402
-from photoreg.synth.scenes import SceneObject, placement  # noqa: E402
+from photoreg.synth.scenes import INSERT_MESH_SCALE, SceneObject, placement  # noqa: E402
 from photoreg.types import Intrinsics  # noqa: E402
 
 ALBEDO = 0.8
@@ -404,7 +404,7 @@ def test_textured_insert_against_mitsuba(tmp_path):
 def test_inserted_mesh_against_mitsuba(tmp_path):
     """`photoreg synth --insert-mesh`: Mitsuba renders the file's mesh, smooth, where the recording's session places
     object.obj (its vertex normals written out, `smooth = true`): the session's object projects onto the insert
-    mask's box, and inside the object the composites with smooth normals follow the path tracer's shading pattern
+    mask (the convex mesh's projected hull), and inside the object the composites with smooth normals follow the path tracer's shading pattern
     (correlation per channel: the small recording's lighting is off in scale and colour for both) far better than
     with the faces' own, on an icosahedron whose 20 facets flat shading shows."""
     from photoreg.config import load_session
@@ -419,7 +419,7 @@ def test_inserted_mesh_against_mitsuba(tmp_path):
     assert "--insert-mesh" in json.loads((rec / "scene.json").read_text())["command"]
     assert "\nvn " in (rec / "object.obj").read_text()
     session = load_session(rec / "session.toml")
-    assert session.objects[0].smooth and session.objects[0].scale == 0.2
+    assert session.objects[0].smooth and session.objects[0].scale == INSERT_MESH_SCALE
     K = json.loads((rec / "intrinsics.json").read_text())
     _, poses = read_tum_trajectory(rec / "groundtruth.txt")
     world = load_object(session.objects[0]).vertices
