@@ -404,9 +404,9 @@ def test_textured_insert_against_mitsuba(tmp_path):
 def test_inserted_mesh_against_mitsuba(tmp_path):
     """`photoreg synth --insert-mesh`: Mitsuba renders the file's mesh, smooth, where the recording's session places
     object.obj (its vertex normals written out, `smooth = true`): the session's object projects onto the insert
-    mask (the convex mesh's projected hull), and inside the object the composites with smooth normals follow the path tracer's shading pattern
-    (correlation per channel: the small recording's lighting is off in scale and colour for both) far better than
-    with the faces' own, on an icosahedron whose 20 facets flat shading shows."""
+    mask (the convex mesh's projected hull), and inside the object the composites with smooth normals follow the
+    path tracer's shading pattern (correlation per channel: the small recording's lighting is off in scale and colour
+    for both) far better than with the faces' own, on an icosahedron whose 20 facets flat shading shows."""
     from photoreg.config import load_session
     from photoreg.render.scene import load_object
     from photoreg.runner import run_session

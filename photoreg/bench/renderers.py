@@ -142,7 +142,8 @@ def write_report(results_dir: Path, md: Path, png: Path) -> None:
              "again with other seeds: the same baseline as an exact renderer would score it.", ""]
     for run in runs:
         lines += [f"## {run['device_name']} ({run['device']}), ground truth at {run['spp']} spp, inserted "
-                  + (f"{run['insert']} (largest side {INSERT_MESH_SCALE:g} m, smooth normals)" if run.get("insert") else "cube"), "",
+                  + (f"{run['insert']} (largest side {INSERT_MESH_SCALE:g} m, smooth normals)" if run.get("insert")
+                     else "cube"), "",
                   f"Command: `{run['command']}`; {run['date']}; Warp {run['warp']}, Open3D {run['open3d']}; "
                   f"{run['size']}, {run['frames']} frames per recording, {run['spp']} spp."
                   + (f" Note: {run['note']}." if run.get("note") else ""), "",

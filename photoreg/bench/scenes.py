@@ -10,7 +10,8 @@ SCENE_CACHE = Path.home() / ".cache" / "photoreg" / "bench_scenes"
 
 
 def cached_scene(cache: Path, kind: str, width: int, height: int, frames: int, spp: int, camera: str = "orbit",
-                 inserts: str = "none", log: Callable[[str], None] | None = None, insert_mesh: str | None = None) -> Path:
+                 inserts: str = "none", log: Callable[[str], None] | None = None,
+                 insert_mesh: str | None = None) -> Path:
     """The recording of scene `kind` with these settings in `cache` (folder named after them), rendered
     into a .partial folder and renamed when missing, so an interrupted run leaves no half scene behind.
     `insert_mesh`: a mesh file inserted instead of the cube (`photoreg synth --insert-mesh`)."""
