@@ -190,6 +190,25 @@ def test_split_by_geometry_cuts_object_off_floor_and_joins_floor_pieces():
     assert (alb.split_by_geometry(labels, [], p, n, 10) == labels).all()
 
 
+def test_split_by_geometry_and_the_floor_plane_with_every_sample_twice():
+    # A static camera's solve holds each sample twice (the frame's and the history's copy of the same pixels, a
+    # millimetre apart): the spacing is the surfaces', not the copies', so the split and the floor's plane are
+    # those of the samples once (with the copies' spacing the box fell apart into specks of -1).
+    rng = np.random.default_rng(2)
+    p, n, is_box = _box_on_floor(rng)
+    strip = ~is_box & (p[:, 0] > 0.1) & (p[:, 0] < 0.3) & (np.abs(p[:, 1]) < 0.2)
+    labels = np.where(is_box | strip, 1, 0)
+    once = alb.split_by_geometry(labels, [1], p, n, 10)
+    p2, n2 = np.vstack([p, p + rng.normal(0, 0.001, p.shape)]), np.vstack([n, n])
+    twice = alb.split_by_geometry(np.concatenate([labels, labels]), [1], p2, n2, 20)
+    assert (twice >= 0).all() and (twice[:len(p)] == once).all() and (twice[len(p):] == once).all()
+    from scipy.spatial import cKDTree
+    assert alb.sample_spacing(cKDTree(p2), p2) == pytest.approx(alb.sample_spacing(cKDTree(p), p), rel=0.1)
+    floor = ~np.concatenate([is_box, is_box])
+    plane = alb.dominant_plane(p2[floor], n2[floor])
+    assert plane is not None and plane.tolerance == pytest.approx(3 * 0.02, rel=0.1)
+
+
 def test_split_off_plane_takes_an_object_out_of_the_floor_region():
     # The box is a few % of one region with the floor (its shaded faces took the floor's colour), too few to
     # flag the region as mixed: the largest region keeps its plane, the box becomes a region of its own and
