@@ -272,7 +272,7 @@ def sample_spacing(tree, queries: np.ndarray) -> float:
     frame, and the traced light's irradiance swung between 2.2 and 3.0 (truth 2.8) with them."""
     d = tree.query(queries, k=3)[0]
     nearest, second = median(d[:, 1]), median(d[:, 2])
-    return nearest if nearest >= COPY_RATIO * second else second
+    return second if np.isfinite(second) and nearest < COPY_RATIO * second else nearest   # two points: no second
 
 
 def dominant_plane(points: np.ndarray, normals: np.ndarray) -> Plane | None:
