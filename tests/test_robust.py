@@ -418,6 +418,23 @@ def test_coloured_light_and_one_strong_sun():
     assert metrics.direction_error_deg(sol.lighting.sh, light) < 3
 
 
+def test_the_traced_light_s_irradiance_is_filtered():
+    """LightingFilter.irradiance: the first frame's value, then steps of the random walk's steady-state gain toward
+    each frame's (0.1318 at process_noise 0.02); a restart (a detected change) or a light newly held takes the frame's
+    value; a frame without a light forgets it. Noisy values about a constant come out 5x steadier."""
+    filt = LightingFilter(3, FilterConfig())
+    assert np.array_equal(filt.irradiance(np.array([2.0, 2.0, 2.0]), False), [2.0, 2.0, 2.0])
+    np.testing.assert_allclose(filt.irradiance(np.array([3.0, 2.0, 1.0]), False), [2.1318, 2.0, 1.8682], atol=1e-4)
+    assert np.array_equal(filt.irradiance(np.array([5.0, 5.0, 5.0]), True), [5.0, 5.0, 5.0])
+    assert filt.irradiance(None, False) is None
+    assert np.array_equal(filt.irradiance(np.array([1.0, 1.0, 1.0]), False), [1.0, 1.0, 1.0])
+    rng = np.random.default_rng(3)
+    raw = 2.0 + rng.normal(0, 0.2, (60, 3))
+    out = np.array([filt.irradiance(e, i == 0) for i, e in enumerate(raw)])
+    assert np.abs(np.diff(out[10:], axis=0)).mean() < 0.2 * np.abs(np.diff(raw[10:], axis=0)).mean()
+    assert abs(out[10:].mean() - 2.0) < 0.05
+
+
 def test_temporal_filter_smooths_and_follows_a_switch():
     """20 noisy frames of a static light, then the sun switched off: the filter flickers less than the
     raw solves on the static part and detects the switch within two frames."""

@@ -28,6 +28,7 @@ Directions the data never observe (a single plane) stay at the prediction.
 """
 from __future__ import annotations
 
+import math
 from collections import deque
 from dataclasses import dataclass
 
@@ -73,6 +74,7 @@ class LightingFilter:
         self.x: np.ndarray | None = None          # (3, K)
         self.precision: np.ndarray | None = None  # (3, K, K)
         self.ratios: deque = deque(maxlen=HISTORY)  # fit ratios of recent frames without a change
+        self.light: np.ndarray | None = None      # (3,) the traced light's filtered irradiance (irradiance())
 
     def prediction(self) -> np.ndarray | None:
         """The current estimate (3, K), None before the first frame with samples."""
@@ -126,3 +128,22 @@ class LightingFilter:
             x, L = z_full, J
         self.x, self.precision = x, L
         return x[:, :k_frame].copy(), False
+
+    def irradiance(self, e: np.ndarray | None, restart: bool) -> np.ndarray | None:
+        """The traced light's irradiance (RGB) filtered across frames, from the frame's `e` (None: no light held,
+        which forgets it): smoothed at the steady-state gain of a random walk whose step is process_noise of the
+        measurement's variance, the SH's gain in well-observed directions (0.13 at the default 0.02); the frame's
+        own value where no light was held before or the SH filter restarted (`restart`: a change). Each frame's
+        solve splits the light between the traced light and the SH differently; the SH is filtered, so a renderer
+        that drew the light's disc with the frame's own irradiance (its sharp shadows) and the rest from the
+        filtered SH less that light made shadows that pulsed with the split (the demo: 2.46-2.92, jumps of 10%)."""
+        if e is None:
+            self.light = None
+            return None
+        e = np.asarray(e, dtype=np.float64)
+        if self.light is None or restart:
+            self.light = e.copy()
+        else:
+            q = self.cfg.process_noise
+            self.light = self.light + 0.5 * (math.sqrt(q * q + 4.0 * q) - q) * (e - self.light)
+        return self.light.copy()
