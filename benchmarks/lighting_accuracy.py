@@ -63,11 +63,13 @@ ABLATIONS = {  # one change each against the defaults, on the recordings with gr
     "sun_refine_every 1": {"sun_refine_every": 1},
     "no observed bounce": {"bounce_observed": False},
     "stride 2": {"stride": 2}, "sample_box 3": {"sample_box": 3}, "censored": {"censored": True},
+    "no temporal filter, no history": {"temporal": False, "history": 0},
 }
 REAL_ABLATIONS = ("defaults", "no temporal filter", "new_view_share 1", "no history", "no exposure gain",
                   "ray_length 1.0", "every 4", "depth_filter_px 9", "normal_smoothing_voxels 3",
                   "depth_filter_px 9, normal_smoothing_voxels 3", "sun_refine_every 1",
-                  "no observed bounce", "stride 2", "sample_box 3", "censored")  # also on the real ones
+                  "no observed bounce", "stride 2", "sample_box 3", "censored",
+                  "no temporal filter, no history")  # also on the real ones
 # Variants of the scene kinds (other sun azimuth and seed, a handheld camera, the issues' 640x480): the table's
 # scenes alone over-fitted choices made on them (tabletop 0.133 / 0.152 / 0.189-0.209 at 320x240 / 640x480 /
 # other azimuths before region_weights); the 40-frame orbits are as dense as the demo's (4.6 degrees a frame
@@ -81,11 +83,12 @@ VARIANTS = [("tabletop, sun azimuth 150", "tabletop", ["--yaw", "120", "--seed",
             ("tabletop, 40 frames", "tabletop", [], None, 40),
             ("tabletop, sun azimuth 150, 40 frames", "tabletop", ["--yaw", "120", "--seed", "1"], None, 40),
             ("tabletop, overexposed 1.6x", "tabletop", ["--overexpose", "1.6"], None, None),
-            ("tabletop, overexposed 2.2x", "tabletop", ["--overexpose", "2.2"], None, None)]
+            ("tabletop, overexposed 2.2x", "tabletop", ["--overexpose", "2.2"], None, None),
+            ("tabletop, static camera", "tabletop", ["--camera", "static"], None, 30)]
 VARIANT_ABLATIONS = ("defaults", "new_view_share 1", "no history", "history_view_deg 0", "no region weights",
                      "bands 3", "sun_regularization 0.05", "every 4", "depth_filter_px 9", "normal_smoothing_voxels 3",
                      "depth_filter_px 9, normal_smoothing_voxels 3", "sun_refine_every 1", "no observed bounce",
-                     "stride 2", "sample_box 3", "censored")
+                     "stride 2", "sample_box 3", "censored", "no temporal filter, no history")
 HOLDOUT = 0.2
 START, END = "<!-- generated:start -->", "<!-- generated:end -->"
 
