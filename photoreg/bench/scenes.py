@@ -14,13 +14,14 @@ def cached_scene(cache: Path, kind: str, width: int, height: int, frames: int, s
                  insert_mesh: str | None = None) -> Path:
     """The recording of scene `kind` with these settings in `cache` (folder named after them), rendered
     into a .partial folder and renamed when missing, so an interrupted run leaves no half scene behind.
-    `insert_mesh`: a mesh file inserted instead of the cube (`photoreg synth --insert-mesh`)."""
+    `insert_mesh`: a mesh file inserted instead of the cube (`photoreg synth --insert-mesh`; with inserts only)."""
     from ..synth.generate import SynthConfig, generate
 
+    insert_mesh = insert_mesh if inserts != "none" else None
     name = f"{kind}-{width}x{height}-{frames}f-{spp}spp"
     name += "" if camera == "orbit" else f"-{camera}"
     name += "" if inserts == "none" else "-inserts"
-    name += f"-{Path(insert_mesh).stem}" if insert_mesh and inserts != "none" else ""
+    name += f"-{Path(insert_mesh).stem}" if insert_mesh else ""
     folder = Path(cache) / name
     if not (folder / "lighting_gt.json").is_file():
         if folder.exists() and any(folder.iterdir()):
@@ -31,8 +32,7 @@ def cached_scene(cache: Path, kind: str, width: int, height: int, frames: int, s
         if tmp.exists():
             shutil.rmtree(tmp)
         generate(SynthConfig(scene=kind, out=str(tmp), frames=frames, width=width, height=height, spp=spp,
-                             camera=camera, insert_frames=inserts,
-                             insert_mesh=insert_mesh if inserts != "none" else None), log=None)
+                             camera=camera, insert_frames=inserts, insert_mesh=insert_mesh), log=None)
         if folder.exists():
             folder.rmdir()
         tmp.rename(folder)
