@@ -257,6 +257,69 @@ def test_gbuffer_albedo_from_the_mesh_texture(tmp_path, backend, device):
         load_scene([ObjectConfig(mesh=str(plain), albedo="wood")])
 
 
+@pytest.mark.parametrize("suffix", ["glb", "obj"])
+@pytest.mark.parametrize("backend", ["pyrender", "raycast"])
+def test_gbuffer_albedo_of_a_mesh_of_several_materials(tmp_path, backend, suffix):
+    """A GLB (an OBJ) of two quads with materials of their own (one a texture image, one a glTF base colour alone,
+    an OBJ's Kd): each quad's pixels take their own material's albedo up to its edges, the imaged quad's as the
+    one-material texture test checks it. trimesh's merged mesh packs both into one atlas image, whose padding bleeds into the faces near
+    its tiles' edges (and which made a base colour an 8-bit image): every pixel of the plain quad was off."""
+    from PIL import Image
+
+    from photoreg.io.images import srgb_to_linear
+
+    texture = np.kron(np.random.default_rng(5).integers(0, 256, (2, 2, 3)), np.ones((4, 4, 1))).astype(np.uint8)
+    plain = np.array([230, 89, 26]) / 255.0             # glTF base colours, Kd: linear (trimesh keeps 8 bits)
+    quad = [[0, 0], [1, 0], [1, 1], [0, 1]], [[0, 1, 2], [0, 2, 3]]
+    left, right = (trimesh.Trimesh(np.c_[np.array(quad[0]) + [x, -0.5], np.zeros(4)], quad[1], process=False,
+                                   visual=trimesh.visual.TextureVisuals(uv=quad[0], material=m))
+                   for x, m in ((-1.0, trimesh.visual.material.PBRMaterial(baseColorTexture=Image.fromarray(texture))),
+                                (0.0, trimesh.visual.material.PBRMaterial(baseColorFactor=[*plain, 1.0]))))
+    path = tmp_path / f"two.{suffix}"
+    trimesh.Scene([left, right]).export(path)
+    scale = 0.4
+    scene = load_scene([ObjectConfig(mesh=str(path), scale=scale, albedo="texture")])
+    assert len(scene.objects[0].textures) == 2 and np.isfinite(scene.objects[0].albedo).all()
+    gb = GBufferRenderer(scene, INTR, 2, "cpu", backend).render(LOOK_DOWN)
+    v, u = np.mgrid[0:INTR.height, 0:INTR.width]
+    x, y = (u - INTR.cx) / INTR.fx / scale, -(v - INTR.cy) / INTR.fy / scale   # LOOK_DOWN's hit, the quads' frame
+    full = gb.coverage == 1
+    on_plain = full & (x > 0.02)
+    assert on_plain.sum() > 300 and (full & (x > 0.95)).any()                   # up to the outer edge
+    np.testing.assert_allclose(gb.albedo[on_plain], np.broadcast_to(plain, (on_plain.sum(), 3)), rtol=0, atol=1e-6)
+    tx, ty = (x + 1) * 8 - 0.5, (0.5 - y) * 8 - 0.5                              # the image's texel coordinates
+    blocks = ((tx % 4 >= 0.05) & (tx % 4 <= 2.95) & (ty % 4 >= 0.05) & (ty % 4 <= 2.95)   # between a block's centres
+              & (x < -0.02) & (x > -0.98) & (np.abs(y) < 0.48))
+    on_image = full & blocks
+    want = srgb_to_linear(texture)[np.clip(ty, 0, 7).astype(int), np.clip(tx, 0, 7).astype(int)]
+    assert on_image.sum() > 150
+    np.testing.assert_allclose(gb.albedo[on_image], want[on_image], rtol=0, atol=1e-5)
+
+
+def test_gbuffer_albedo_of_kenneys_desk_chair(data_dir):
+    """Kenney's chairDesk.glb (three glTF materials, base colours alone) from four sides: every pixel wholly on the
+    chair takes exactly one of its materials' colours (through trimesh's packed atlas, a tenth of them were off by
+    more than 0.01 and every one by the 8-bit image's rounding)."""
+    from photoreg.synth.cameras import look_at
+
+    path = data_dir / "meshes" / "kenney_chairs" / "chairDesk.glb"
+    colours = np.unique([g.visual.material.baseColorFactor[:3] for g in trimesh.load(path).geometry.values()],
+                        axis=0) / 255.0
+    assert len(colours) == 2
+    scene = load_scene([ObjectConfig(mesh=str(path), rotation=[90, 0, 0], scale=0.5, albedo="texture")])
+    centre, size = scene.bounds.mean(0), np.ptp(scene.bounds, 0).max()
+    K = Intrinsics(160, 120, 150.0, 150.0, 79.5, 59.5)
+    renderer = GBufferRenderer(scene, K, 2, "cpu", "raycast")
+    seen = np.zeros(len(colours), int)
+    for azimuth in np.radians([30, 120, 210, 300]):
+        gb = renderer.render(look_at(centre + 1.6 * size * np.array([np.cos(azimuth), np.sin(azimuth), 0.6]), centre))
+        albedo = gb.albedo[gb.coverage == 1]
+        gap = np.abs(albedo[:, None] - colours[None]).max(-1)
+        assert len(albedo) > 1500 and gap.min(1).max() < 1e-6, gap.min(1).max()
+        seen += np.bincount(gap.argmin(1), minlength=len(colours))
+    assert seen.min() > 1000, seen
+
+
 @pytest.mark.parametrize("backend", ["pyrender", "raycast"])
 def test_gbuffer_albedo_from_vertex_and_face_colours(tmp_path, backend):
     """objects.albedo = "texture" on a mesh with vertex colours (a PLY) interpolates their linear values over each

@@ -8,7 +8,7 @@ processed. The SDF grid
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from functools import cached_property
 from pathlib import Path
 
@@ -35,10 +35,13 @@ class VirtualObject:
     source: str                 # the mesh file, for messages
     vertices: np.ndarray        # (V, 3) float64 world positions
     faces: np.ndarray           # (F, 3) int64
-    albedo: np.ndarray          # (3,) float32 linear RGB (textured: the texture's mean)
+    albedo: np.ndarray          # (3,) float32 linear RGB (varying: the mean of its parts' means, by area)
     transform: np.ndarray       # (4, 4) object-to-world (object_transform)
+    # Where each face takes its albedo when it varies (objects.albedo = "texture"), (F,) int32: an index into
+    # `textures`, or CORNER_COLOURS (`corners`); None: the one `albedo` everywhere.
+    face_source: np.ndarray | None = None
+    textures: list = field(default_factory=list)  # (H, W, 3) float32 linear RGB albedos, row 0 the image's top
     uv: np.ndarray | None = None       # (V, 2) float32 texture coordinates (origin at the image's bottom left)
-    texture: np.ndarray | None = None  # (H, W, 3) float32 linear RGB albedo, row 0 the image's top
     corners: np.ndarray | None = None  # (F, 3, 3) float32 linear RGB albedo at each face's corners (vertex colours)
     normals: np.ndarray | None = None  # (V, 3) float32 world unit vertex normals of a smooth object (objects.smooth)
 
@@ -95,11 +98,11 @@ class VirtualScene:
         source, smooth, uv, corners, normals, textures = [], [], [], [], [], []
         for o in self.objects:
             n = len(o.faces)
-            if o.texture is not None:
-                source.append(np.full(n, len(textures), np.int32))
-                textures.append(o.texture)
-            else:
-                source.append(np.full(n, NO_TEXTURE if o.corners is None else CORNER_COLOURS, np.int32))
+            if o.face_source is None:
+                source.append(np.full(n, NO_TEXTURE, np.int32))
+            else:   # the object's texture indices after those of the objects before it
+                source.append(np.where(o.face_source >= 0, o.face_source + len(textures), o.face_source))
+                textures.extend(o.textures)
             smooth.append(np.full(n, o.normals is not None))
             uv.append(o.uv[o.faces] if o.uv is not None else np.zeros((n, 3, 2), np.float32))
             corners.append(o.corners if o.corners is not None else np.zeros((n, 3, 3), np.float32))
@@ -136,42 +139,75 @@ def load_object(obj: ObjectConfig) -> VirtualObject:
         albedo = np.asarray(obj.albedo, dtype=np.float64)
         if albedo.shape != (3,) or not np.all(np.isfinite(albedo)) or np.any(albedo < 0):
             raise ValueError(f"{path}: object albedo must be 3 finite non-negative numbers, got {obj.albedo}")
-    try:
-        mesh = trimesh.load(str(path), force="mesh", process=True)
+    try:   # a textured object's parts apart: each keeps its own material (mesh_parts)
+        parts = mesh_parts(trimesh.load(str(path), process=True)) if textured else [
+            trimesh.load(str(path), force="mesh", process=True)]
     except Exception as e:  # trimesh raises many types for unreadable files
         raise ValueError(f"{path}: cannot read mesh ({e})") from None
-    if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0 or len(mesh.vertices) == 0:
+    if not parts or not all(isinstance(m, trimesh.Trimesh) for m in parts) or sum(len(m.faces) for m in parts) == 0 \
+            or sum(len(m.vertices) for m in parts) == 0:
         raise ValueError(f"{path}: mesh has no triangles")
-    if not np.all(np.isfinite(mesh.vertices)):
+    local = np.concatenate([np.asarray(m.vertices, np.float64) for m in parts])
+    if not np.all(np.isfinite(local)):
         raise ValueError(f"{path}: mesh has non-finite vertices")
-    v = np.asarray(mesh.vertices, np.float64) @ T[:3, :3].T + T[:3, 3]
-    faces = np.asarray(mesh.faces, np.int64)
+    v = local @ T[:3, :3].T + T[:3, 3]
+    base = np.cumsum([0] + [len(m.vertices) for m in parts])
+    faces = np.concatenate([np.asarray(m.faces, np.int64) + b for m, b in zip(parts, base)])
     normals = None
     if obj.smooth:   # the file's vertex normals, else trimesh's (the mean of the faces' round each vertex), turned
-        normals = np.asarray(mesh.vertex_normals, np.float64) @ T[:3, :3].T
+        normals = np.concatenate([np.asarray(m.vertex_normals, np.float64) for m in parts]) @ T[:3, :3].T
         normals = (normals / np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)).astype(np.float32)
     if not textured:
         return VirtualObject(str(path), v, faces, albedo.astype(np.float32), T, normals=normals)
+    varying = [part_albedo(m, path) for m in parts]
+    textures = [t for *_, t in varying if t is not None]
+    index = np.cumsum([0] + [t is not None for *_, t in varying])   # each part's texture, if it has one
+    source = np.concatenate([np.full(len(m.faces), CORNER_COLOURS if t is None else k, np.int32)
+                             for m, (*_, t), k in zip(parts, varying, index)])
+    area = np.array([m.area for m in parts])
+    mean = np.average([a[2] for a in varying], axis=0, weights=area if area.sum() > 0 else None).astype(np.float32)
+    return VirtualObject(str(path), v, faces, mean, T, source, textures, np.concatenate([a[0] for a in varying]),
+                         np.concatenate([a[1] for a in varying]), normals)
+
+
+def part_albedo(mesh, path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]:
+    """One part's varying albedo: (uv (V, 2), corner colours (F, 3, 3), mean linear RGB (3,), texture or None)
+    float32. Vertex or face colours (8-bit sRGB) at the corners, else its base-colour texture (base_colour_texture)
+    with zero corners."""
     kind = getattr(mesh.visual, "kind", None)
     if kind in ("vertex", "face"):   # colours at the vertices (or per face), 8-bit sRGB
-        colours = mesh.visual.vertex_colors[faces] if kind == "vertex" else np.repeat(
+        colours = mesh.visual.vertex_colors[mesh.faces] if kind == "vertex" else np.repeat(
             np.asarray(mesh.visual.face_colors)[:, None], 3, axis=1)
-        corners = srgb_to_linear(np.ascontiguousarray(np.asarray(colours, np.uint8)[..., :3]))
-        return VirtualObject(str(path), v, faces, corners.mean(axis=(0, 1)), T, corners=corners, normals=normals)
+        corners = srgb_to_linear(np.ascontiguousarray(np.asarray(colours, np.uint8)[..., :3])).astype(np.float32)
+        return np.zeros((len(mesh.vertices), 2), np.float32), corners, corners.mean(axis=(0, 1)), None
     uv, texture = base_colour_texture(mesh, path)
-    return VirtualObject(str(path), v, faces, texture.mean(axis=(0, 1)), T, uv, texture, normals=normals)
+    return uv, np.zeros((len(mesh.faces), 3, 3), np.float32), texture.mean(axis=(0, 1)), texture
+
+
+def mesh_parts(loaded) -> list:
+    """A loaded mesh file as its meshes, one per material (a GLB's geometries, an OBJ's materials), placed by the
+    file's scene graph. Apart, each keeps its own texture and colour: trimesh's merged mesh packs them into one atlas
+    image whose padding the bilinear lookup blends into the faces along its tiles' edges (Kenney's chairDesk.glb,
+    three colours: a tenth of its pixels off by more than 0.01)."""
+    import trimesh
+
+    if isinstance(loaded, trimesh.Scene):
+        return [m for m in loaded.dump(concatenate=False) if isinstance(m, trimesh.Trimesh) and len(m.faces)]
+    return [loaded]
 
 
 def base_colour_texture(mesh, path: Path) -> tuple[np.ndarray, np.ndarray]:
     """(uv (V, 2) float32, linear RGB albedo (H, W, 3) float32) of a trimesh mesh's base colour: its texture image
     decoded from sRGB, times the material's baseColorFactor where it has one (glTF's PBR materials; OBJ's and PLY's
-    images alone), or that factor alone (a 1 x 1 texture) where a glTF material has no image. ValueError naming the
+    images alone), or that factor alone (a 1 x 1 texture) where a glTF material has no image (an OBJ's: its Kd). ValueError naming the
     file when there is neither, or an image without texture coordinates."""
     material = getattr(mesh.visual, "material", None)
     if path.suffix.lower() == ".obj" and b"mtllib" not in path.read_bytes():
         material = None   # trimesh gives an OBJ with texture coordinates and no material a grey stand-in image
     image = getattr(material, "baseColorTexture", None) or getattr(material, "image", None)
     factor = getattr(material, "baseColorFactor", None)
+    if image is None and factor is None and path.suffix.lower() == ".obj":
+        factor = getattr(material, "diffuse", None)   # an OBJ material without an image: its Kd (linear)
     if image is None and factor is None:
         raise ValueError(f"{path}: albedo = {ALBEDO_TEXTURE!r} but the mesh has no texture image, base colour or "
                          "vertex colours")
