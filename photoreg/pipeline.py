@@ -347,7 +347,8 @@ class Pipeline:
             if self.filter is not None:
                 filtered, diag.change_detected = self.filter.update(sol, new_view)
                 F = Lighting(filtered)
-                e = self.filter.irradiance(None if sun is None else sol.terms["sun"], diag.change_detected)
+                e = self.filter.irradiance(None if sun is None else sol.terms["sun"], diag.change_detected,
+                                           None if sun is None else sun.direction)
                 if e is not None:   # the renderers draw the light with the filtered irradiance
                     diag.sun["irradiance_frame"] = diag.sun["irradiance"]
                     diag.sun["irradiance"] = np.round(e, 7).tolist()

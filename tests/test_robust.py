@@ -433,6 +433,14 @@ def test_the_traced_light_s_irradiance_is_filtered():
     out = np.array([filt.irradiance(e, i == 0) for i, e in enumerate(raw)])
     assert np.abs(np.diff(out[10:], axis=0)).mean() < 0.2 * np.abs(np.diff(raw[10:], axis=0)).mean()
     assert abs(out[10:].mean() - 2.0) < 0.05
+    # Another light, found without a change detected (its direction 60 degrees from the last): its own value; the
+    # held light refined by a few degrees: smoothed on
+    up, tilted, other = np.array([0.0, 0, 1]), unit([0.1, 0, 1]), unit([np.sqrt(3), 0, 1])
+    filt = LightingFilter(3, FilterConfig())
+    for _ in range(5):
+        filt.irradiance(np.full(3, 2.0), False, up)
+    np.testing.assert_allclose(filt.irradiance(np.full(3, 3.0), False, tilted), np.full(3, 2.1318), atol=1e-4)
+    assert np.array_equal(filt.irradiance(np.full(3, 6.0), False, other), np.full(3, 6.0))
 
 
 def test_temporal_filter_smooths_and_follows_a_switch():

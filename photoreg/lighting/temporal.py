@@ -38,6 +38,10 @@ from . import sh
 from .robust import Solution
 
 HISTORY = 10  # frames of fit ratios behind the change test's baseline
+# A traced light whose direction moves more than this from one frame to the next is another light: its irradiance
+# filter starts again (two coarse spacings of the light search, photoreg.lighting.sun; a held light's refinements
+# move it by at most about one and a third)
+LIGHT_SWITCH_DEG = 25.0
 
 
 @dataclass
@@ -75,6 +79,7 @@ class LightingFilter:
         self.precision: np.ndarray | None = None  # (3, K, K)
         self.ratios: deque = deque(maxlen=HISTORY)  # fit ratios of recent frames without a change
         self.light: np.ndarray | None = None      # (3,) the traced light's filtered irradiance (irradiance())
+        self.light_direction: np.ndarray | None = None   # (3,) that light's direction at the last frame
 
     def prediction(self) -> np.ndarray | None:
         """The current estimate (3, K), None before the first frame with samples."""
@@ -129,19 +134,24 @@ class LightingFilter:
         self.x, self.precision = x, L
         return x[:, :k_frame].copy(), False
 
-    def irradiance(self, e: np.ndarray | None, restart: bool) -> np.ndarray | None:
+    def irradiance(self, e: np.ndarray | None, restart: bool, direction: np.ndarray | None = None) -> np.ndarray | None:
         """The traced light's irradiance (RGB) filtered across frames, from the frame's `e` (None: no light held,
-        which forgets it): smoothed at the steady-state gain of a random walk whose step is process_noise of the
-        measurement's variance, the SH's gain in well-observed directions (0.13 at the default 0.02); the frame's
-        own value where no light was held before or the SH filter restarted (`restart`: a change). Each frame's
+        which forgets it) of the light at `direction` (unit, world): smoothed at the steady-state gain of a random
+        walk whose step is process_noise of the measurement's variance, the SH's gain in well-observed directions
+        (0.13 at the default 0.02); the frame's own value where no light was held before, the SH filter restarted
+        (`restart`: a change) or the light is another (its direction moved by more than LIGHT_SWITCH_DEG). Each frame's
         solve splits the light between the traced light and the SH differently; the SH is filtered, so a renderer
         that drew the light's disc with the frame's own irradiance (its sharp shadows) and the rest from the
         filtered SH less that light made shadows that pulsed with the split (the demo: 2.46-2.92, jumps of 10%)."""
         if e is None:
-            self.light = None
+            self.light = self.light_direction = None
             return None
         e = np.asarray(e, dtype=np.float64)
-        if self.light is None or restart:
+        moved = direction is not None and self.light_direction is not None and (
+            float(np.dot(direction, self.light_direction)) < math.cos(math.radians(LIGHT_SWITCH_DEG)))
+        if direction is not None:
+            self.light_direction = np.asarray(direction, dtype=np.float64).copy()
+        if self.light is None or restart or moved:
             self.light = e.copy()
         else:
             q = self.cfg.process_noise
