@@ -6,7 +6,8 @@
 #                       wheels back out by their sizes and installs them into /tmp/site
 #   .gl/*.deb           libEGL and its kin (glvnd; open3d's CUDA build loads libEGL.so.1, pyrender draws through EGL):
 #                       unpacked there with `dpkg -x DEB /`, no apt
-#   .carry/data         the shared data's first FRAMES (default 50) frames of TUM fr1_rpy and the bunny's mesh
+#   .carry/data         the shared data's first FRAMES (default 50) frames of TUM fr1_rpy, the bunny's mesh and
+#                       Kenney's desk chair
 #   .carry/pytest       pytest's wheels (gpu_run.sh's gbcheck step runs tests there; carry it with the data)
 #   .olds/photoreg      the package at commit OLD (default HEAD) for gpu_run.sh's A/B steps (OLD=/tmp/olds there)
 # The folders are kept out of git (.git/info/exclude). Then, one call per chunk, back to back (the machine goes back
@@ -72,5 +73,7 @@ head -n "$frames" "$src/associations.txt" > "$dst/associations.txt"
 cp "$src"/{rgb,depth,groundtruth,intrinsics,accelerometer}.txt "$dst/"
 awk '{print $2; print $4}' "$dst/associations.txt" | while read -r f; do cp "$src/$f" "$dst/$f"; done
 cp "$PHOTOREG_DATA/meshes/bunny_5k.obj" .carry/data/meshes/
+mkdir -p .carry/data/meshes/kenney_chairs   # the several materials' G-buffer test (gpu_run.sh gbcheck)
+cp "$PHOTOREG_DATA/meshes/kenney_chairs/chairDesk.glb" .carry/data/meshes/kenney_chairs/
 git archive "$old" photoreg | tar -x -C .olds
 du -sh .carry/c* .carry/data .gl .olds | tr '\n' ' '; echo

@@ -287,7 +287,7 @@ for step in "$@"; do
     gbcheck)
       [ -d .carry/pytest ] && python3 -m pip install -q --no-index --no-deps --target /tmp/site .carry/pytest/*.whl
       python3 -m pytest -q -p no:cacheprovider tests/test_render.py \
-        -k "raycast or egl or window_holds or texture or colours or smooth" 2>&1 \
+        -k "raycast or egl or window_holds or texture or colours or smooth or materials or kenney" 2>&1 \
         | tail -15 | tee "$out/gbuffer_pytest.txt" || true   # the checks below whatever the tests say
       for session in sessions/tum_fr1_rpy.toml data/demo/session.toml; do
         python3 benchmarks/gbuffer_check.py $session 0:8 cuda "$out/gbuffer_check_${session//\//_}.npz" \

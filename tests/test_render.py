@@ -257,9 +257,10 @@ def test_gbuffer_albedo_from_the_mesh_texture(tmp_path, backend, device):
         load_scene([ObjectConfig(mesh=str(plain), albedo="wood")])
 
 
+@pytest.mark.parametrize("device", DEVICES)
 @pytest.mark.parametrize("suffix", ["glb", "obj"])
 @pytest.mark.parametrize("backend", ["pyrender", "raycast"])
-def test_gbuffer_albedo_of_a_mesh_of_several_materials(tmp_path, backend, suffix):
+def test_gbuffer_albedo_of_a_mesh_of_several_materials(tmp_path, backend, suffix, device):
     """A GLB (an OBJ) of two quads with materials of their own (one a texture image, one a glTF base colour alone,
     an OBJ's Kd): each quad's pixels take their own material's albedo up to its edges, the imaged quad's as the
     one-material texture test checks it. trimesh's merged mesh packs both into one atlas image, whose padding bleeds into the faces near
@@ -280,7 +281,7 @@ def test_gbuffer_albedo_of_a_mesh_of_several_materials(tmp_path, backend, suffix
     scale = 0.4
     scene = load_scene([ObjectConfig(mesh=str(path), scale=scale, albedo="texture")])
     assert len(scene.objects[0].textures) == 2 and np.isfinite(scene.objects[0].albedo).all()
-    gb = GBufferRenderer(scene, INTR, 2, "cpu", backend).render(LOOK_DOWN)
+    gb = GBufferRenderer(scene, INTR, 2, device, backend).render(LOOK_DOWN)
     v, u = np.mgrid[0:INTR.height, 0:INTR.width]
     x, y = (u - INTR.cx) / INTR.fx / scale, -(v - INTR.cy) / INTR.fy / scale   # LOOK_DOWN's hit, the quads' frame
     full = gb.coverage == 1
