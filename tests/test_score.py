@@ -277,3 +277,30 @@ def test_true_light_of_a_generated_recording(tmp_path):
     scene["lighting"]["suns"] = []
     (tmp_path / "scene.json").write_text(json.dumps(scene))
     assert true_light(tmp_path)[1] is None
+
+
+def test_light_direction_error_of_the_traced_light(tmp_path):
+    """With a generated recording's sun (scene.json), `photoreg score` also scores the traced light's direction
+    (diagnostics.sun.direction) against it: the angle itself, 90 degrees for a frame that held no light (noted);
+    without scene.json (a recording that only has lighting_gt.json) the metric is left out."""
+    demo = Path(__file__).resolve().parents[1] / "data" / "demo"
+    _, sun = true_light(demo)
+    true = np.asarray(sun["direction"])
+    axis = np.cross(true, [0, 0, 1])
+    tilted = Rotation.from_rotvec(np.radians(7.0) * axis / np.linalg.norm(axis))
+    gt = json.loads((demo / "lighting_gt.json").read_text())
+    F = np.asarray(gt["sh"])
+    lines = [json.dumps({"frame": i, "bands": sh.bands_of(F.shape[1]), "sh": F.tolist(),
+                         "diagnostics": {"sun": None if d is None else {"direction": list(d)}}})
+             for i, d in enumerate([true, tilted.apply(true), None])]
+    out, rec = write_run(tmp_path, F, lines)
+    result = score(out, rec)["lighting"]
+    assert "light_direction_deg" not in result["metrics"]            # no scene.json: no true sun
+    (rec / "scene.json").write_text((demo / "scene.json").read_text())
+    result = score(out, rec)["lighting"]
+    errors = [r["light_direction_deg"] for r in result["per_frame"]]
+    assert errors[0] == pytest.approx(0.0, abs=1e-6) and errors[1] == pytest.approx(7.0, abs=1e-6)
+    assert errors[2] == metrics.NO_DIRECTION_DEG
+    assert result["metrics"]["light_direction_deg"]["median"] == pytest.approx(7.0, abs=1e-6)
+    assert any("1 frame(s) without a traced light" in n for n in result["notes"])
+    assert "light_direction_deg" in format_report(score(out, rec))

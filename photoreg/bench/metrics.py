@@ -51,6 +51,16 @@ def direction_error_deg(sh_est: np.ndarray, sh_gt: np.ndarray) -> float:
     return _angle_deg(sh.dominant_direction(sh_est), sh.dominant_direction(sh_gt))
 
 
+def light_direction_error_deg(traced, true_direction) -> float:
+    """Angle between a traced light's direction (SolveDiagnostics.sun["direction"]; None: no light held) and the
+    true light's (its brightest sun): where a sun dominates, the SH's l=1 direction (direction_error_deg) mixes it
+    with the sky's, the truth's own too (the demo's: tens of degrees from its sun), and this is where shadows fall.
+    NO_DIRECTION_DEG without a light or with a non-finite one."""
+    if traced is None or not np.isfinite(traced).all() or not np.linalg.norm(traced) > 0:
+        return NO_DIRECTION_DEG
+    return _angle_deg(np.asarray(traced, dtype=np.float64), np.asarray(true_direction, dtype=np.float64))
+
+
 def scale_invariant_rmse(est: np.ndarray, gt: np.ndarray) -> float:
     """||alpha est - gt||_rms / ||gt||_rms with the least-squares alpha over all values (0 if gt is 0)."""
     e = np.asarray(est, dtype=np.float64).ravel()

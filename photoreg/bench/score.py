@@ -30,7 +30,8 @@ from ..io.recording import detect_format, open_recording
 from ..lighting import sh
 from . import metrics
 
-LIGHTING_METRICS = ("direction_deg", "irradiance_si_rmse_upper", "irradiance_si_rmse_sphere", "colour_deg")
+LIGHTING_METRICS = ("direction_deg", "irradiance_si_rmse_upper", "irradiance_si_rmse_sphere", "colour_deg",
+                    "light_direction_deg")
 COMPOSITE_METRICS = ("rmse", "si_rmse", "baseline_rmse", "baseline_si_rmse", "flip", "baseline_flip")
 
 
@@ -89,12 +90,14 @@ def true_light(recording: str | Path) -> tuple[np.ndarray, dict | None]:
                "irradiance": (float(gt["exposure"]) * sun.irradiance * np.asarray(sun.colour)).tolist(), "gain": 1.0}
 
 
-def load_lighting(out: str | Path) -> dict[int, np.ndarray]:
-    """frame index -> SH (3, B*B) from OUT/lighting.jsonl (non-finite SH kept as is, 'sh': null -> NaN)."""
+def load_lighting(out: str | Path) -> tuple[dict[int, np.ndarray], dict[int, list | None]]:
+    """From OUT/lighting.jsonl, frame index -> SH (3, B*B) (non-finite SH kept as is, 'sh': null -> NaN), and frame
+    index -> the traced light's direction (diagnostics.sun.direction; None where no light was held)."""
     path = Path(out) / "lighting.jsonl"
     if not path.is_file():
         raise FileNotFoundError(f"{path}: no per-frame lighting (lighting.jsonl) in {out}")
     frames: dict[int, np.ndarray] = {}
+    lights: dict[int, list | None] = {}
     lines: dict[int, int] = {}
     with path.open() as f:
         for lineno, line in enumerate(f, 1):
@@ -117,8 +120,10 @@ def load_lighting(out: str | Path) -> dict[int, np.ndarray]:
                 frames[frame] = np.full((3, (bands or 1) ** 2), np.nan)
             else:
                 frames[frame] = _sh_array(obj["sh"], bands, where)
+            light = (obj.get("diagnostics") or {}).get("sun")
+            lights[frame] = light.get("direction") if isinstance(light, dict) else None
             lines[frame] = lineno
-    return frames
+    return frames, lights
 
 
 def color_files(recording: str | Path) -> list[Path]:
@@ -132,11 +137,13 @@ def color_files(recording: str | Path) -> list[Path]:
     return open_recording(path).color_files
 
 
-def score_lighting(estimates: dict[int, np.ndarray], gt: np.ndarray, n_expected: int = 0) -> dict:
-    """Per-frame lighting metrics and their summaries; frames 0..n_expected-1 missing count as non-finite."""
+def score_lighting(estimates: dict[int, np.ndarray], gt: np.ndarray, n_expected: int = 0,
+                   lights: dict[int, list | None] | None = None, sun: dict | None = None) -> dict:
+    """Per-frame lighting metrics and their summaries; frames 0..n_expected-1 missing count as non-finite. With the
+    run's traced lights (load_lighting) and the true sun (true_light), light_direction_deg too."""
     frames = sorted(set(estimates) | set(range(n_expected)))
     per_frame, notes = [], []
-    n_missing = n_nonfinite = n_no_dir = 0
+    n_missing = n_nonfinite = n_no_dir = n_no_light = 0
     for i in frames:
         est = estimates.get(i)
         if est is None:
@@ -150,6 +157,10 @@ def score_lighting(estimates: dict[int, np.ndarray], gt: np.ndarray, n_expected:
         m = metrics.lighting_metrics(est, gt)
         if not metrics.has_direction(est):
             n_no_dir += 1
+        if sun is not None:
+            traced = (lights or {}).get(i)
+            m["light_direction_deg"] = metrics.light_direction_error_deg(traced, sun["direction"])
+            n_no_light += traced is None
         per_frame.append({"frame": i, "finite": True, **m})
     gt_has_dir = metrics.has_direction(gt)
     if not gt_has_dir:
@@ -159,6 +170,9 @@ def score_lighting(estimates: dict[int, np.ndarray], gt: np.ndarray, n_expected:
     if n_no_dir:
         notes.append(f"{n_no_dir} frame(s) without an l=1 band: direction error counted as "
                      f"{metrics.NO_DIRECTION_DEG:g} deg (no information)")
+    if n_no_light:
+        notes.append(f"{n_no_light} frame(s) without a traced light: its direction error counted as "
+                     f"{metrics.NO_DIRECTION_DEG:g} deg")
     if n_missing:
         notes.append(f"{n_missing} frame(s) of the recording have no line in lighting.jsonl")
     n_bad = n_missing + n_nonfinite
@@ -167,8 +181,8 @@ def score_lighting(estimates: dict[int, np.ndarray], gt: np.ndarray, n_expected:
             "n_missing": n_missing, "nonfinite_fraction": n_bad / len(frames) if frames else 0.0,
             "gt_bands": sh.bands_of(gt.shape[1]), "estimate_bands": est_bands,
             "flicker": metrics.flicker([estimates[i] for i in sorted(estimates)]),
-            "metrics": {k: metrics.summarize(r.get(k) for r in per_frame)
-                        for k in LIGHTING_METRICS if k != "direction_deg" or gt_has_dir},
+            "metrics": {k: metrics.summarize(r.get(k) for r in per_frame) for k in LIGHTING_METRICS
+                        if (k != "direction_deg" or gt_has_dir) and (k != "light_direction_deg" or sun is not None)},
             "notes": notes, "per_frame": per_frame}
 
 
@@ -261,8 +275,10 @@ def composite_flicker(out: str | Path, recording: str | Path) -> dict | None:
 def score(out: str | Path, recording: str | Path, composite: bool = False) -> dict:
     """All scores of run folder `out` against `recording` as a JSON-ready dict."""
     gt = load_gt(recording)
+    sun = true_light(recording)[1] if (Path(recording) / "scene.json").is_file() else None   # a generated one's
+    estimates, lights = load_lighting(out)
     result = {"out": str(out), "recording": str(recording),
-              "lighting": score_lighting(load_lighting(out), gt, len(color_files(recording)))}
+              "lighting": score_lighting(estimates, gt, len(color_files(recording)), lights, sun)}
     if composite:
         inserts = any((Path(recording) / "insert").glob("*.exr"))
         result["composite"] = score_composites(out, recording) if inserts else {"notes": ["no insert renders"]}
