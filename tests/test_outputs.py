@@ -154,9 +154,10 @@ def test_frames_read_ahead_in_order_with_the_unreadable_ones_reported(tmp_path):
         list(ReadAhead(rec, threads=2))
 
 
-def test_run_skips_an_unreadable_frame_and_names_it(tmp_path):
+def test_run_skips_an_unreadable_frame_and_names_it(tmp_path, capsys):
     """`photoreg run` of a recording with a corrupt colour image: every other frame is processed in order, the bad
-    one is listed in summary.json's frames_skipped with the file's error."""
+    one is listed in summary.json's frames_skipped with the file's error; with none readable the run is an error
+    (exit status 2) that names the first, summary.json written all the same."""
     from photoreg.cli import main
     from photoreg.io.recording import open_recording
     from photoreg.types import Intrinsics
@@ -173,6 +174,14 @@ def test_run_skips_an_unreadable_frame_and_names_it(tmp_path):
     assert [r["frame"] for r in records] == [0, 2, 3] and summary["frames_processed"] == 3
     (skipped,) = summary["frames_skipped"]
     assert skipped["frame"] == 1 and str(bad) in skipped["error"]
+    for path in open_recording(root).color_files:   # none readable: the run fails, summary.json says why
+        path.write_bytes(b"not a png")
+    capsys.readouterr()
+    assert main(["run", str(root), "--out", str(out), "--device", "cpu", "--quiet"]) == 2
+    first = open_recording(root).color_files[0]
+    assert f"no frame could be processed, all 4 selected were skipped (frame 0: {first}" in capsys.readouterr().err
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["frames_processed"] == 0 and len(summary["frames_skipped"]) == 4
 
 
 def test_run_stops_with_the_failed_write_named(tmp_path):
