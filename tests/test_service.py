@@ -75,6 +75,33 @@ def test_frame_encodings_round_trip(recording):
                 np.testing.assert_array_equal(got.color, frame.color)
 
 
+def test_depth_at_a_lower_resolution_is_scaled_to_the_colour(recording):
+    """frame.depth with its own width and height (a phone's LiDAR under its camera): decoded at that size and scaled
+    to the colour's like a recording's (io.images.registered_depth), in every depth encoding; another shape or a
+    size beyond the colour's is a bad_field."""
+    frame = first_frame(recording)
+    small = np.round(frame.depth[::2, ::2] * K.depth_scale).astype(np.uint16)       # 40 x 30 under 80 x 60
+    want = np.kron(small, np.ones((2, 2))).astype(np.float32) / np.float32(K.depth_scale)
+    cbytes = cv2.imencode(".png", cv2.cvtColor(frame.color, cv2.COLOR_RGB2BGR))[1].tobytes()
+    encoded = {"u16": small.astype("<u2").tobytes(), "png16": cv2.imencode(".png", small)[1].tobytes(),
+               "f32": (small.astype(np.float32) / np.float32(K.depth_scale)).astype("<f4").tobytes()}
+
+    def message(enc: str, data: bytes, **size) -> bytes:
+        return encode({"type": "frame", "timestamp": 0.0,
+                       "color": {"encoding": "png", "offset": 0, "length": len(cbytes)},
+                       "depth": {"encoding": enc, "offset": len(cbytes), "length": len(data), **size}}, cbytes + data)
+
+    for enc, data in encoded.items():
+        got = decode_frame(*decode(message(enc, data, width=40, height=30)), K, default_index=0)
+        np.testing.assert_array_equal(got.depth, want, err_msg=enc)
+        np.testing.assert_array_equal(got.color, frame.color)
+    for w, h, text in ((40, 20, "another shape"), (160, 120, "at most")):
+        with pytest.raises(ProtocolError, match=text) as e:
+            decode_frame(*decode(message("u16", np.zeros((h, w), "<u2").tobytes(), width=w, height=h)), K,
+                         default_index=0)
+        assert e.value.code == "bad_field"
+
+
 def test_text_messages_round_trip():
     hello = parse_hello(decode(encode(hello_message(K, OPTIONS, "tok")))[0], "cpu", Limits())
     assert hello.intrinsics == K and hello.token == "tok" and hello.version == "1.1" and hello.composite == "jpeg"

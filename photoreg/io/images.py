@@ -88,6 +88,24 @@ def read_depth_raw(path: str | os.PathLike) -> np.ndarray:
     return img
 
 
+# A depth map of another size than its colour image is taken as registered to it at another resolution (the same
+# field of view: phones' LiDAR, 256 x 192 under 1920 x 1440 colour) where the two shapes agree within this share.
+ASPECT_TOLERANCE = 0.01
+
+
+def registered_depth(raw: np.ndarray, width: int, height: int, where: str) -> np.ndarray:
+    """A depth map registered to a width x height colour image, at the colour's size: as it is where it has that
+    size, scaled by the nearest pixel centre (values and holes kept) where it has another of the same shape
+    (ASPECT_TOLERANCE); ValueError starting with `where` for another shape."""
+    h, w = raw.shape[:2]
+    if (h, w) == (height, width):
+        return raw
+    if abs(w * height - h * width) > ASPECT_TOLERANCE * h * width:
+        raise ValueError(f"{where}: depth is {w}x{h} but colour is {width}x{height}, another shape: depth must be "
+                         "registered to the colour image")
+    return cv2.resize(raw, (width, height), interpolation=cv2.INTER_NEAREST_EXACT)
+
+
 def write_png_rgb(path: str | os.PathLike, rgb8: np.ndarray) -> None:
     with atomic_path(path, ".png") as tmp:
         if not cv2.imwrite(str(tmp), cv2.cvtColor(rgb8, cv2.COLOR_RGB2BGR)):

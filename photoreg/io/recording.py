@@ -17,14 +17,10 @@ import numpy as np
 
 from ..types import Frame, Intrinsics
 from .ahead import Ahead
-from .images import read_depth_raw, read_rgb
+from .images import read_depth_raw, read_rgb, registered_depth
 from .poses import check_pose
 
 FORMATS = ("native", "tum", "redwood", "7scenes")
-# A depth map of another size than its colour image is taken as registered to it at another resolution (the same
-# field of view: phones' LiDAR, 256 x 192 under 1920 x 1440 colour) where the two shapes agree within this share,
-# and scaled to the colour's size by the nearest pixel centre; else the frame is an error.
-ASPECT_TOLERANCE = 0.01
 
 
 @dataclass
@@ -76,11 +72,7 @@ class Recording:
         color = read_rgb(cpath)
         raw = read_depth_raw(dpath)
         h, w = color.shape[:2]
-        if raw.shape != (h, w):   # registered to the colour at another resolution (a phone's LiDAR): scaled up
-            if abs(raw.shape[1] * h - raw.shape[0] * w) > ASPECT_TOLERANCE * raw.shape[0] * w:
-                raise ValueError(f"{dpath}: depth is {raw.shape[1]}x{raw.shape[0]} but colour {cpath.name} is {w}x{h}, "
-                                 "another shape: depth must be registered to the colour image")
-            raw = cv2.resize(raw, (w, h), interpolation=cv2.INTER_NEAREST_EXACT)
+        raw = registered_depth(raw, w, h, f"{dpath} (colour {cpath.name})")   # a phone's LiDAR: scaled up
         if (w, h) != (self.intrinsics.width, self.intrinsics.height):
             raise ValueError(f"{cpath}: image is {w}x{h} but the intrinsics say "
                              f"{self.intrinsics.width}x{self.intrinsics.height}")

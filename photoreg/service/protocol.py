@@ -19,6 +19,7 @@ import numpy as np
 
 from ..config import (LightingConfig, ObjectConfig, ReconstructionConfig, RenderConfig, Session, _check_object,
                       _fill, validate)
+from ..io.images import registered_depth
 from ..io.intrinsics import checked_intrinsics
 from ..io.native import depth_to_png16
 from ..io.poses import check_pose
@@ -445,8 +446,25 @@ def _decode_color(enc: str, data: bytes, intr: Intrinsics) -> np.ndarray:
     return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
 
 
-def _decode_depth(enc: str, data: bytes, intr: Intrinsics) -> np.ndarray:
-    w, h = intr.width, intr.height
+def _depth_size(spec: dict, intr: Intrinsics) -> tuple[int, int]:
+    """frame.depth's optional width and height (default the intrinsics'): at most the colour's, its shape."""
+    w, h = (_count(spec.get(k, v), f"frame.depth.{k}") for k, v in (("width", intr.width), ("height", intr.height)))
+    if not (0 < w <= intr.width and 0 < h <= intr.height):
+        raise ProtocolError("bad_field", f"frame.depth: {w}x{h} must be at least 1x1 and at most the colour's "
+                                         f"{intr.width}x{intr.height}")
+    return w, h
+
+
+def _decode_depth(enc: str, data: bytes, intr: Intrinsics, w: int, h: int) -> np.ndarray:
+    """Depth in metres at the colour's size from a w x h depth image registered to it (io.images.registered_depth)."""
+    raw = _decode_raw_depth(enc, data, intr, w, h)
+    try:
+        return registered_depth(raw, intr.width, intr.height, "frame.depth")
+    except ValueError as e:
+        raise ProtocolError("bad_field", str(e)) from None
+
+
+def _decode_raw_depth(enc: str, data: bytes, intr: Intrinsics, w: int, h: int) -> np.ndarray:
     scale = np.float32(intr.depth_scale)
     if enc == "f32":
         if len(data) != w * h * 4:
@@ -462,7 +480,7 @@ def _decode_depth(enc: str, data: bytes, intr: Intrinsics) -> np.ndarray:
         except (ValueError, struct.error) as e:
             raise ProtocolError("bad_image", f"frame.depth: {e}") from None
         if size != (w, h):
-            raise ProtocolError("bad_image", f"frame.depth: image is {size[0]}x{size[1]}, the intrinsics say {w}x{h}")
+            raise ProtocolError("bad_image", f"frame.depth: image is {size[0]}x{size[1]}, the frame says {w}x{h}")
         raw = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
         if raw is None or raw.shape != (h, w) or raw.dtype != np.uint16:
             what = "corrupt png data" if raw is None else f"{raw.dtype} with shape {raw.shape}"
@@ -486,9 +504,10 @@ def decode_frame(header: dict, payload: memoryview, intr: Intrinsics, default_in
             except ValueError as e:
                 raise ProtocolError("bad_field", str(e)) from None
         cenc, cdata = _payload(_get(header, "color", "frame"), "color", payload, COLOR_ENCODINGS)
-        denc, ddata = _payload(_get(header, "depth", "frame"), "depth", payload, DEPTH_ENCODINGS)
+        dspec = _get(header, "depth", "frame")
+        denc, ddata = _payload(dspec, "depth", payload, DEPTH_ENCODINGS)
         color = _decode_color(cenc, cdata, intr)
-        depth = _decode_depth(denc, ddata, intr)
+        depth = _decode_depth(denc, ddata, intr, *_depth_size(dspec, intr))
     except ProtocolError as e:
         e.frame = index
         raise
