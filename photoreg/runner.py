@@ -200,8 +200,9 @@ def run_session(s: Session, quiet: bool = False, on_frame: Callable[[int, int], 
                 summary["tracking"]["ate_note"] = str(e)
     write_json(out / "summary.json", summary)
     if not results:   # summary.json says why; a batch or a script must not take the run for a success
-        raise ValueError(f"{s.recording.path}: no frame could be processed, all {len(skipped)} selected were skipped "
-                         f"(frame {skipped[0]['frame']}: {skipped[0]['error']})")
+        first = f" (frame {skipped[0]['frame']}: {skipped[0]['error']})" if skipped else ""
+        raise ValueError(f"{s.recording.path}: no frame could be processed, all {len(skipped)} selected were "
+                         f"skipped{first}")
     return summary
 
 

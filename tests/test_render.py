@@ -263,8 +263,9 @@ def test_gbuffer_albedo_from_the_mesh_texture(tmp_path, backend, device):
 def test_gbuffer_albedo_of_a_mesh_of_several_materials(tmp_path, backend, suffix, device):
     """A GLB (an OBJ) of two quads with materials of their own (one a texture image, one a glTF base colour alone,
     an OBJ's Kd): each quad's pixels take their own material's albedo up to its edges, the imaged quad's as the
-    one-material texture test checks it. trimesh's merged mesh packs both into one atlas image, whose padding bleeds into the faces near
-    its tiles' edges (and which made a base colour an 8-bit image): every pixel of the plain quad was off."""
+    one-material texture test checks it. trimesh's merged mesh packs both into one atlas image, whose padding
+    bleeds into the faces near its tiles' edges (and which made a base colour an 8-bit image): every pixel of the
+    plain quad was off."""
     from PIL import Image
 
     from photoreg.io.images import srgb_to_linear

@@ -199,8 +199,8 @@ def mesh_parts(loaded) -> list:
 def base_colour_texture(mesh, path: Path) -> tuple[np.ndarray, np.ndarray]:
     """(uv (V, 2) float32, linear RGB albedo (H, W, 3) float32) of a trimesh mesh's base colour: its texture image
     decoded from sRGB, times the material's baseColorFactor where it has one (glTF's PBR materials; OBJ's and PLY's
-    images alone), or that factor alone (a 1 x 1 texture) where a glTF material has no image (an OBJ's: its Kd). ValueError naming the
-    file when there is neither, or an image without texture coordinates."""
+    images alone), or that factor alone (a 1 x 1 texture) where a glTF material has no image (an OBJ's: its Kd).
+    ValueError naming the file when there is neither, or an image without texture coordinates."""
     material = getattr(mesh.visual, "material", None)
     if path.suffix.lower() == ".obj" and b"mtllib" not in path.read_bytes():
         material = None   # trimesh gives an OBJ with texture coordinates and no material a grey stand-in image
