@@ -347,10 +347,10 @@ def test_frame_errors_name_file(tmp_path, case):
     assert str(where) in str(_frame_error(tmp_path))
 
 
-def test_depth_registered_at_another_resolution_is_scaled_to_the_colour(tmp_path):
+def test_depth_registered_at_another_resolution_is_scaled_to_the_colour(tmp_path, capsys):
     """A depth map of half the colour's size in x and y (a phone's LiDAR under its camera) is read at the colour's
-    size, each depth pixel over the 2 x 2 colour pixels it covers, its values and holes as they are; a depth map of
-    another shape stays an error naming the file."""
+    size, each depth pixel over the 2 x 2 colour pixels it covers, its values and holes as they are (`photoreg info`
+    says so); a depth map of another shape stays an error naming the file."""
     _, raws = write_native(tmp_path)
     depth = tmp_path / "depth/000001.png"
     half = raws[1][::2, ::2].copy()
@@ -358,6 +358,9 @@ def test_depth_registered_at_another_resolution_is_scaled_to_the_colour(tmp_path
     cv2.imwrite(str(depth), half)
     got = open_recording(tmp_path).frame(1).depth
     assert got.shape == (H, W)
+    cv2.imwrite(str(tmp_path / "depth/000000.png"), raws[0][::2, ::2].copy())
+    assert main(["info", str(tmp_path)]) == 0
+    assert f"depth size:  {W // 2}x{H // 2} (first frame), scaled to the colour's" in capsys.readouterr().out
     np.testing.assert_array_equal(got, np.kron(half, np.ones((2, 2))).astype(np.float32) / np.float32(DEPTH_SCALE))
     cv2.imwrite(str(depth), raws[1][:, : W // 2 + 1].copy())
     assert str(depth) in str(_frame_error(tmp_path)) and "another shape" in str(_frame_error(tmp_path))

@@ -228,6 +228,12 @@ def info_command(args: argparse.Namespace) -> int:
     print(f"format:      {rec.format}")
     print(f"frames:      {n}")
     print(f"image size:  {k.width}x{k.height}")
+    try:   # depth registered at another resolution is read at the colour's (images.registered_depth)
+        dh, dw = read_depth_raw(rec.depth_files[0]).shape[:2] if n else (k.height, k.width)
+    except (ValueError, OSError):   # an unreadable first frame: listed below
+        dh, dw = k.height, k.width
+    if (dw, dh) != (k.width, k.height):
+        print(f"depth size:  {dw}x{dh} (first frame), scaled to the colour's")
     print(f"intrinsics:  fx={k.fx:g} fy={k.fy:g} cx={k.cx:g} cy={k.cy:g}")
     if rec.distortion is not None:
         print(f"distortion:  k1 k2 p1 p2 k3 = {' '.join(f'{x:g}' for x in rec.distortion)} (not removed)")
