@@ -139,13 +139,11 @@ def load_object(obj: ObjectConfig) -> VirtualObject:
         albedo = np.asarray(obj.albedo, dtype=np.float64)
         if albedo.shape != (3,) or not np.all(np.isfinite(albedo)) or np.any(albedo < 0):
             raise ValueError(f"{path}: object albedo must be 3 finite non-negative numbers, got {obj.albedo}")
-    try:   # a textured object's parts apart: each keeps its own material (mesh_parts)
-        parts = mesh_parts(trimesh.load(str(path), process=True)) if textured else [
-            trimesh.load(str(path), force="mesh", process=True)]
+    try:   # the parts apart: each keeps its own material (mesh_parts)
+        parts = mesh_parts(trimesh.load(str(path), process=True))
     except Exception as e:  # trimesh raises many types for unreadable files
         raise ValueError(f"{path}: cannot read mesh ({e})") from None
-    if not parts or not all(isinstance(m, trimesh.Trimesh) for m in parts) or sum(len(m.faces) for m in parts) == 0 \
-            or sum(len(m.vertices) for m in parts) == 0:
+    if not all(isinstance(m, trimesh.Trimesh) for m in parts) or not any(len(m.faces) for m in parts):
         raise ValueError(f"{path}: mesh has no triangles")
     local = np.concatenate([np.asarray(m.vertices, np.float64) for m in parts])
     if not np.all(np.isfinite(local)):
@@ -160,28 +158,38 @@ def load_object(obj: ObjectConfig) -> VirtualObject:
     if not textured:
         return VirtualObject(str(path), v, faces, albedo.astype(np.float32), T, normals=normals)
     varying = [part_albedo(m, path) for m in parts]
-    textures = [t for *_, t in varying if t is not None]
-    index = np.cumsum([0] + [t is not None for *_, t in varying])   # each part's texture, if it has one
-    source = np.concatenate([np.full(len(m.faces), CORNER_COLOURS if t is None else k, np.int32)
-                             for m, (*_, t), k in zip(parts, varying, index)])
+    textures = [a.texture for a in varying if a.texture is not None]
+    index = np.cumsum([0] + [a.texture is not None for a in varying])   # each part's texture, if it has one
+    source = np.concatenate([np.full(len(m.faces), CORNER_COLOURS if a.texture is None else k, np.int32)
+                             for m, a, k in zip(parts, varying, index)])
     area = np.array([m.area for m in parts])
-    mean = np.average([a[2] for a in varying], axis=0, weights=area if area.sum() > 0 else None).astype(np.float32)
-    return VirtualObject(str(path), v, faces, mean, T, source, textures, np.concatenate([a[0] for a in varying]),
-                         np.concatenate([a[1] for a in varying]), normals)
+    mean = np.average([a.mean for a in varying], axis=0, weights=area if area.sum() > 0 else None)
+    return VirtualObject(str(path), v, faces, mean.astype(np.float32), T, source, textures,
+                         np.concatenate([a.uv for a in varying]), np.concatenate([a.corners for a in varying]), normals)
 
 
-def part_albedo(mesh, path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]:
-    """One part's varying albedo: (uv (V, 2), corner colours (F, 3, 3), mean linear RGB (3,), texture or None)
-    float32. Vertex or face colours (8-bit sRGB) at the corners, else its base-colour texture (base_colour_texture)
+@dataclass
+class PartAlbedo:
+    """One part's varying albedo, float32: its texture coordinates (V, 2), corner colours (F, 3, 3), mean linear RGB
+    (3,) and texture (None: the corners')."""
+
+    uv: np.ndarray
+    corners: np.ndarray
+    mean: np.ndarray
+    texture: np.ndarray | None
+
+
+def part_albedo(mesh, path: Path) -> PartAlbedo:
+    """Vertex or face colours (8-bit sRGB) at the corners, else the part's base-colour texture (base_colour_texture)
     with zero corners."""
     kind = getattr(mesh.visual, "kind", None)
     if kind in ("vertex", "face"):   # colours at the vertices (or per face), 8-bit sRGB
         colours = mesh.visual.vertex_colors[mesh.faces] if kind == "vertex" else np.repeat(
             np.asarray(mesh.visual.face_colors)[:, None], 3, axis=1)
         corners = srgb_to_linear(np.ascontiguousarray(np.asarray(colours, np.uint8)[..., :3])).astype(np.float32)
-        return np.zeros((len(mesh.vertices), 2), np.float32), corners, corners.mean(axis=(0, 1)), None
+        return PartAlbedo(np.zeros((len(mesh.vertices), 2), np.float32), corners, corners.mean(axis=(0, 1)), None)
     uv, texture = base_colour_texture(mesh, path)
-    return uv, np.zeros((len(mesh.faces), 3, 3), np.float32), texture.mean(axis=(0, 1)), texture
+    return PartAlbedo(uv, np.zeros((len(mesh.faces), 3, 3), np.float32), texture.mean(axis=(0, 1)), texture)
 
 
 def mesh_parts(loaded) -> list:
