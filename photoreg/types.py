@@ -58,6 +58,10 @@ class Frame:
     intrinsics: Intrinsics
     pose: np.ndarray | None = None  # 4x4 float64 camera-to-world, None when unknown
     source: str = ""                # file the colour came from, for error messages
+    # the depth at its own resolution (float32 metres) where it is registered to the colour at a lower one (a
+    # phone's LiDAR; io.images.registered_depth scaled it up into `depth`), None where it is at the colour's: what
+    # `photoreg stream` sends, the server scaling it up the same way
+    depth_native: np.ndarray | None = None
 
 
 @dataclass

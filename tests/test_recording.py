@@ -2,6 +2,7 @@
 and every kind of bad input giving an error that names the file (and line)."""
 from __future__ import annotations
 
+import dataclasses
 import json
 import re
 from pathlib import Path
@@ -356,8 +357,13 @@ def test_depth_registered_at_another_resolution_is_scaled_to_the_colour(tmp_path
     half = raws[1][::2, ::2].copy()
     half[1, 2] = 0
     cv2.imwrite(str(depth), half)
-    got = open_recording(tmp_path).frame(1).depth
+    frame = open_recording(tmp_path).frame(1)
+    got = frame.depth
     assert got.shape == (H, W)
+    # kept at its own size for `photoreg stream` (not where undistortion remaps it at the colour's)
+    np.testing.assert_array_equal(frame.depth_native, half.astype(np.float32) / np.float32(DEPTH_SCALE))
+    undistorted = dataclasses.replace(open_recording(tmp_path), distortion=np.zeros(5), undistort=True)
+    assert undistorted.frame(1).depth_native is None and open_recording(tmp_path).frame(0).depth_native is None
     cv2.imwrite(str(tmp_path / "depth/000000.png"), raws[0][::2, ::2].copy())
     assert main(["info", str(tmp_path)]) == 0
     assert f"depth size:  {W // 2}x{H // 2} (first frame), scaled to the colour's" in capsys.readouterr().out

@@ -315,6 +315,33 @@ def test_replay_matches_direct_pipeline(server, recording, tmp_path):
         np.testing.assert_allclose(r["sh"], sh, atol=2e-7)
 
 
+def test_depth_registered_at_a_lower_resolution_streams_at_its_own(server, recording, tmp_path):
+    """A recording whose depth is half the colour's size (a phone's LiDAR): each frame message carries the depth at
+    that size (frame.depth's width and height, a quarter of the bytes in every encoding), which decodes to the depth
+    the recording reads at the colour's size; `photoreg stream` of it gives the lighting the pipeline gives
+    in-process."""
+    import shutil
+
+    half = tmp_path / "half"
+    shutil.copytree(recording, half)
+    for f in sorted((half / "depth").iterdir()):
+        cv2.imwrite(str(f), cv2.imread(str(f), cv2.IMREAD_UNCHANGED)[::2, ::2].copy())
+    frame = first_frame(half)
+    assert frame.depth.shape == (K.height, K.width) and frame.depth_native.shape == (K.height // 2, K.width // 2)
+    full = dataclasses.replace(frame, depth_native=None)
+    for enc in ("png16", "u16", "f32"):
+        header, payload = decode(encode_frame(frame, None, "png", enc))
+        assert (header["depth"]["width"], header["depth"]["height"]) == (K.width // 2, K.height // 2)
+        if enc != "png16":
+            assert header["depth"]["length"] * 4 == decode(encode_frame(full, None, "png", enc))[0]["depth"]["length"]
+        np.testing.assert_array_equal(decode_frame(header, payload, K, default_index=0).depth, frame.depth, err_msg=enc)
+    assert "width" not in decode(encode_frame(first_frame(recording)))[0]["depth"]
+    records, summary = stream(half, server.server.url, tmp_path / "out")
+    assert [r["frame"] for r in records] == list(range(N_FRAMES)) and not summary["errors"]
+    for r, sh in zip(records, direct_lighting(half)):
+        np.testing.assert_allclose(r["sh"], sh, atol=2e-7)
+
+
 def test_asynchronous_lighting_through_the_server(server, recording, tmp_path):
     """`photoreg stream --async` asks for lighting.asynchronous (a hello option): frame 0 is estimated in line and
     equals the direct pipeline's, every later reply carries a finite estimate of an earlier frame or its own

@@ -70,9 +70,9 @@ class Recording:
         """Read frame i: colour HxWx3 uint8 RGB, depth float32 metres (0 = invalid); errors name the file."""
         cpath, dpath = self.frame_files(i)
         color = read_rgb(cpath)
-        raw = read_depth_raw(dpath)
+        native = read_depth_raw(dpath)
         h, w = color.shape[:2]
-        raw = registered_depth(raw, w, h, f"{dpath} (colour {cpath.name})")   # a phone's LiDAR: scaled up
+        raw = registered_depth(native, w, h, f"{dpath} (colour {cpath.name})")   # a phone's LiDAR: scaled up
         if (w, h) != (self.intrinsics.width, self.intrinsics.height):
             raise ValueError(f"{cpath}: image is {w}x{h} but the intrinsics say "
                              f"{self.intrinsics.width}x{self.intrinsics.height}")
@@ -80,12 +80,17 @@ class Recording:
             mx, my = self._undistort_maps
             color = cv2.remap(color, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
             raw = cv2.remap(raw, mx, my, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT)
+        pose = None if self.poses is None or self.poses[i] is None else self.poses[i].copy()
+        return Frame(index=i, timestamp=float(self.timestamps[i]), color=color, depth=self._metres(raw),
+                     intrinsics=self.intrinsics, pose=pose, source=str(cpath),
+                     depth_native=None if native is raw or self.undistort else self._metres(native))
+
+    def _metres(self, raw: np.ndarray) -> np.ndarray:
+        """A depth file's values in float32 metres, 0 where they mean no measurement."""
         depth = raw.astype(np.float32) / np.float32(self.intrinsics.depth_scale)
         if self.invalid_depth is not None:
             depth[raw == self.invalid_depth] = 0.0
-        pose = None if self.poses is None or self.poses[i] is None else self.poses[i].copy()
-        return Frame(index=i, timestamp=float(self.timestamps[i]), color=color, depth=depth,
-                     intrinsics=self.intrinsics, pose=pose, source=str(cpath))
+        return depth
 
     @cached_property
     def _undistort_maps(self) -> tuple[np.ndarray, np.ndarray]:

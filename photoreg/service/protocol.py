@@ -210,7 +210,8 @@ def encode_frame(frame: Frame, index: int | None = None, color: str = "png", dep
                  jpeg_quality: int = 95) -> bytes:
     """A binary `frame` message. png colour is lossless; png16/u16 depth is lossless for frames read from
     16-bit depth files at the intrinsics' depth_scale (depth beyond 65535 units becomes invalid); f32 is
-    lossless for any depth."""
+    lossless for any depth. A frame whose depth is registered at a lower resolution (`frame.depth_native`) sends
+    it at that resolution (frame.depth's width and height), which the receiver scales up as the recording did."""
     if color not in COLOR_ENCODINGS:
         raise ValueError(f"colour encoding must be one of {COLOR_ENCODINGS}, got {color!r}")
     if depth not in DEPTH_ENCODINGS:
@@ -219,10 +220,11 @@ def encode_frame(frame: Frame, index: int | None = None, color: str = "png", dep
         cbytes = np.ascontiguousarray(frame.color, dtype=np.uint8).tobytes()
     else:
         cbytes = _encode_rgb8(frame.color, color, jpeg_quality, f"frame {frame.index}: the colour image")
+    metres = frame.depth if frame.depth_native is None else frame.depth_native
     if depth == "f32":
-        dbytes = np.nan_to_num(frame.depth, nan=0.0, posinf=0.0, neginf=0.0).astype("<f4").tobytes()
+        dbytes = np.nan_to_num(metres, nan=0.0, posinf=0.0, neginf=0.0).astype("<f4").tobytes()
     else:
-        raw = depth_to_png16(frame.depth, frame.intrinsics.depth_scale)
+        raw = depth_to_png16(metres, frame.intrinsics.depth_scale)
         if depth == "u16":
             dbytes = raw.astype("<u2").tobytes()
         else:
@@ -234,6 +236,8 @@ def encode_frame(frame: Frame, index: int | None = None, color: str = "png", dep
               "pose": None if frame.pose is None else np.asarray(frame.pose, dtype=np.float64).tolist(),
               "color": {"encoding": color, "offset": 0, "length": len(cbytes)},
               "depth": {"encoding": depth, "offset": len(cbytes), "length": len(dbytes)}}
+    if frame.depth_native is not None:
+        header["depth"].update(width=metres.shape[1], height=metres.shape[0])
     return encode(header, cbytes + dbytes)
 
 
