@@ -3,7 +3,8 @@ by 0.01-0.02 in si-RMSE with the samples drawn, so a change is compared on the s
 the solve's sample draws, the history's and the transfer's direction set (its random rotation).
 
 usage: python benchmarks/lighting_seeds.py --synth-dir /tmp/bench [--seeds 1,2,3] [--changes "defaults;stride 2"]
-       [--recordings tabletop,tabletop_overexposed_1.6x] (folders of 12 frames in --synth-dir instead of the list below)
+       [--recordings tabletop,tabletop_static_90:90] (folders in --synth-dir instead of the list below, 12 frames of
+       each unless ':FRAMES' follows its name)
 (the recordings of lighting_accuracy.py's tables, made there; prints per recording the mean over seeds of direction
 degrees, irradiance si-RMSE over the upper hemisphere (with its range) and flicker, then the means)
 """
@@ -27,15 +28,24 @@ RECORDINGS = [("tabletop", "tabletop", 12), ("tabletop, sun azimuth 150", "table
               ("corner", "corner", 12), ("tabletop, 40 frames", "tabletop_40_frames", 40)]
 
 
+def _recording(spec: str) -> tuple[str, str, int]:
+    """(name, folder, frames) of a --recordings entry 'NAME' or 'NAME:FRAMES'."""
+    folder, _, frames = spec.partition(":")
+    if frames and not (frames.isdigit() and int(frames) > 1):
+        raise SystemExit(f"--recordings {spec!r}: FRAMES must be a whole number above 1")
+    return folder, folder, int(frames) if frames else 12
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--synth-dir", default="/tmp/photoreg_bench")
     ap.add_argument("--seeds", default="1,2,3")
     ap.add_argument("--changes", default="defaults;stride 2;sample_box 3",
                     help="names of lighting_accuracy.py's ABLATIONS, separated by ';'")
-    ap.add_argument("--recordings", help="comma-separated folders of 12 frames in --synth-dir (default: RECORDINGS)")
+    ap.add_argument("--recordings", help="comma-separated folders in --synth-dir, each 'NAME' (12 frames) or "
+                                         "'NAME:FRAMES' (default: RECORDINGS)")
     a = ap.parse_args()
-    recordings = [(f, f, 12) for f in a.recordings.split(",")] if a.recordings else RECORDINGS
+    recordings = [_recording(r) for r in a.recordings.split(",")] if a.recordings else RECORDINGS
     seeds = [int(x) for x in a.seeds.split(",")]
     changes = [c.strip() for c in a.changes.split(";")]
     unknown = [c for c in changes if c not in la.ABLATIONS]
@@ -54,10 +64,10 @@ def main() -> int:
                                           for r in rows])
             v = res[name, change]
             print(f"{name} | {change}: {v[:, 0].mean():.1f} deg, si-RMSE {v[:, 1].mean():.3f} "
-                  f"({v[:, 1].min():.3f}-{v[:, 1].max():.3f}), flicker {v[:, 2].mean():.3f}", flush=True)
+                  f"({v[:, 1].min():.3f}-{v[:, 1].max():.3f}), flicker {v[:, 2].mean():.4f}", flush=True)
     for change in changes:
         v = np.concatenate([res[name, change] for name, _, _ in recordings])
-        print(f"mean | {change}: {v[:, 0].mean():.1f} deg, si-RMSE {v[:, 1].mean():.3f}, flicker {v[:, 2].mean():.3f}")
+        print(f"mean | {change}: {v[:, 0].mean():.1f} deg, si-RMSE {v[:, 1].mean():.3f}, flicker {v[:, 2].mean():.4f}")
     return 0
 
 
