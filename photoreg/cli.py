@@ -46,6 +46,8 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
                                                      "along their silhouettes (render.stride, default 4)")
     p.add_argument("--gbuffer", choices=GBUFFER_BACKENDS, help="the objects' G-buffer rasterised by pyrender or "
                                                                "ray-traced by Warp (render.gbuffer, default pyrender)")
+    p.add_argument("--shutter", type=float, help="seconds the camera's shutter is open: the objects blurred by its "
+                                                 "motion as the frame is (render.shutter, default 0: sharp)")
     p.add_argument("--video", action="store_true", help="also composite.mp4: the composites as a video "
                                                           "(sessions with [[objects]])")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -74,7 +76,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--env", default="procedural", help="HDR environment map path, or 'procedural'")
     p.add_argument("--yaw", type=float, default=0.0, help="environment yaw about world +z, degrees")
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--camera", default="orbit", choices=["orbit", "handheld", "static"])
+    p.add_argument("--camera", default="orbit", choices=["orbit", "handheld", "static", "pan"],
+                   help="camera path: orbit about the scene (default), orbit with hand jitter, static, or pan (turning "
+                        "left and right on the spot)")
     p.add_argument("--direct-only", action="store_true", help="direct illumination only (no interreflection)")
     p.add_argument("--insert-frames", default="auto",
                    help="frames re-rendered with a virtual object: comma-separated list, 'auto' or 'none'")
@@ -86,6 +90,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="texture the inserted cube (its session then asks for albedo = \"texture\")")
     p.add_argument("--insert-mesh", help="insert this mesh file (PLY/OBJ/OFF/GLB, scaled to a largest side of "
                                          "0.2 m, smooth normals) instead of the cube")
+    p.add_argument("--shutter", type=float, default=0.0,
+                   help="seconds the shutter stays open, centred on each frame's time: the camera's motion blurs the "
+                        "colour and the inserts (default 0: an instant)")
 
     p = sub.add_parser("score", help="official accuracy metrics of a run against ground truth")
     p.add_argument("out", help="output folder of a run (holds lighting.jsonl)")

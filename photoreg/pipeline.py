@@ -464,10 +464,11 @@ class Pipeline:
                 self._held, self._held_for = (frame.index, F, dataclasses.replace(diag, notes=list(diag.notes))), 0
             if self.render is not None:
                 with self._timed(t, "render"):
-                    composite = self.render(prep.linear, prep.depth, grid, maps, pose, F.sh, gain, diag.sun, t)
+                    composite = self.render(prep.linear, prep.depth, grid, maps, pose, F.sh, gain, diag.sun, t,
+                                            frame.timestamp)
                 # the composite keeps the preprocessed colour outside the renderer's region: the frame's own unless
                 # the luminance was denoised
-                region = self.render.last.region if lc.denoise == "none" else None
+                region = self.render.region if lc.denoise == "none" else None
         if F is None:  # no pose: keep the previous estimate (or darkness), flagged weak
             prev = self.prev_F if self.prev_F is not None else np.zeros((3, self.solver_cfg.fit_bands ** 2))
             F, diag = Lighting(prev.copy()), SolveDiagnostics(notes=["no pose: previous estimate repeated"])

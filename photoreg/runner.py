@@ -53,7 +53,8 @@ def session_from_args(args) -> Session:
                               ("depth_filter", "reconstruction", "depth_filter_px"),
                               ("normal_smoothing", "reconstruction", "normal_smoothing_voxels"),
                               ("voxel_size", "reconstruction", "voxel_size"), ("shadows", "render", "shadows"),
-                              ("render_stride", "render", "stride"), ("gbuffer", "render", "gbuffer")):
+                              ("render_stride", "render", "stride"), ("gbuffer", "render", "gbuffer"),
+                              ("shutter", "render", "shutter")):
         v = getattr(args, opt)
         if v is not None:
             setattr(getattr(s, section), key, v)

@@ -123,7 +123,7 @@ def test_objects_name_meshes_in_the_server_s_folder(tmp_path):
 
     def hello(mesh, meshes=tmp_path / "meshes", **extra):
         options = {"objects": [{**obj, "mesh": mesh}], "render": {"shadows": "shadowmap", "stride": 2,
-                                                                  "gbuffer": "raycast"}}
+                                                                  "gbuffer": "raycast", "shutter": 0.01}}
         msg = {**hello_message(K, options), **extra}
         return parse_hello(msg, "cpu", Limits(), meshes)
 
@@ -131,7 +131,8 @@ def test_objects_name_meshes_in_the_server_s_folder(tmp_path):
     assert h.session.objects[0].mesh == str(tmp_path / "meshes" / "bunny.obj") and h.composite == "png"
     ready = ready_message(h, "cpu", 2, Limits())
     assert ready["compositing"] is True and ready["settings"]["composite"] == "png"
-    assert ready["settings"]["render"] == {"shadows": "shadowmap", "light_rays": 16, "stride": 2, "gbuffer": "raycast"}
+    assert ready["settings"]["render"] == {"shadows": "shadowmap", "light_rays": 16, "stride": 2, "gbuffer": "raycast",
+                                           "shutter": 0.01}
     assert ready_message(parse_hello(hello_message(K, OPTIONS), "cpu", Limits()), "cpu", 2, Limits())[
         "compositing"] is False
     for mesh, says in (("../secret.obj", "file name"), (str(tmp_path / "secret.obj"), "file name"),

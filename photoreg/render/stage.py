@@ -12,6 +12,7 @@ from photoreg.kernels.raycast import SurfaceMaps, raycast_surface
 from photoreg.kernels.transfer import make_direction_set
 from photoreg.render.composite import Layers, RenderInput, composite
 from photoreg.render.gbuffer import GBufferRenderer
+from photoreg.render.motion_blur import blur_insertion, motion
 from photoreg.render.registry import get_renderer
 from photoreg.render.scene import load_scene, voxel_grid
 from photoreg.types import Intrinsics
@@ -35,6 +36,8 @@ class RenderStage:
         self._dirs: dict[int, tuple[np.ndarray, np.ndarray]] = {}
         self.last: Layers | None = None
         self.last_input: RenderInput | None = None
+        self.region: tuple[int, int, int, int] | None = None   # the latest composite's (composite.Layers.region)
+        self._previous: tuple[float, np.ndarray] | None = None  # (timestamp, pose) of the latest frame rendered
 
     def directions(self, bands: int) -> tuple[np.ndarray, np.ndarray]:
         """The ray set for `bands`, made once (same rays and seed as the lighting solve)."""
@@ -59,14 +62,16 @@ class RenderStage:
 
     def __call__(self, camera: np.ndarray, sensor_depth: np.ndarray, grid: DenseGrid, maps: SurfaceMaps | None,
                  pose: np.ndarray, F: np.ndarray, gain: float = 1.0, sun: dict | None = None,
-                 timings: dict[str, float] | None = None) -> np.ndarray:
+                 timings: dict[str, float] | None = None, timestamp: float | None = None) -> np.ndarray:
         """Composite (H, W, 3 linear) of one frame: camera linear image, sensor depth (metres, 0 invalid),
         real grid and the frame's ray-cast maps (used when at the render stride, render.stride; else, or with
         None, the stage casts its own), pose (camera-to-world), lighting F (3, B*B), exposure gain and the
         traced light (SolveDiagnostics.sun) when the solve found one. `timings`: gets the ms of its parts,
         'render gbuffer' (the surface ray casts: the window's at every pixel, the render stride's when the frame's
         maps are at another; and the G-buffer), 'render shadows' (the renderer) and 'render composite' (host time;
-        each part ends on its own read-back, so a device's work lands in it)."""
+        each part ends on its own read-back, so a device's work lands in it). `timestamp` (seconds): with
+        render.shutter, the frame's time, which with the previous frame's gives the camera's motion the insertion is
+        blurred by (render.motion_blur; `region` then grows with it)."""
         t0 = time.perf_counter()
         rc, lc = self.session.reconstruction, self.session.lighting
         x0, y0, x1, y1 = self.window(pose)
@@ -90,6 +95,15 @@ class RenderStage:
         self.last_input, self.last = inp, self.renderer(inp)
         t2 = time.perf_counter()
         out = composite(camera, self.last)
+        self.region = self.last.region
+        m = None if timestamp is None else motion(pose, timestamp, self._previous, self.session.render.shutter)
+        if timestamp is not None:
+            self._previous = (timestamp, np.array(pose, dtype=np.float64))
+        if m is not None:   # the surface each pixel shows: the objects' where they cover it, else the sensor's
+            depth = np.nan_to_num(sensor_depth, nan=0.0, posinf=0.0, neginf=0.0)
+            box, cover = gb.box, gb.coverage[gb.box] > 0.5
+            depth[box][cover] = gb.window_depth[cover]
+            out, self.region = blur_insertion(out, camera, self.region, depth, self.intrinsics, m)
         if timings is not None:
             for part, ms in (("gbuffer", t1 - t0), ("shadows", t2 - t1), ("composite", time.perf_counter() - t2)):
                 timings["render " + part] = ms * 1000.0

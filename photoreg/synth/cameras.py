@@ -9,7 +9,8 @@ from scipy.spatial.transform import Rotation
 from ..types import Intrinsics
 from .scenes import OrbitRig
 
-CAMERA_PATHS = ("orbit", "handheld", "static")
+CAMERA_PATHS = ("orbit", "handheld", "static", "pan")
+PAN_DEG = 10.0  # the pan path's yaw amplitude: it turns left and right twice over the sequence
 
 
 def default_intrinsics(width: int, height: int, hfov_deg: float = 60.0, depth_scale: float = 5000.0) -> Intrinsics:
@@ -43,16 +44,23 @@ def _smooth_noise(rng: np.random.Generator, s: np.ndarray, dims: int) -> np.ndar
     return out
 
 
-def camera_path(kind: str, n: int, rig: OrbitRig, seed: int = 0) -> np.ndarray:
-    """n camera-to-world poses (n, 4, 4): orbit about rig.target, orbit with hand jitter, or static."""
+def camera_path(kind: str, n: int, rig: OrbitRig, seed: int = 0, at: np.ndarray | None = None) -> np.ndarray:
+    """Camera-to-world poses (len(at), 4, 4) of an n-frame path: orbit about rig.target, orbit with hand jitter,
+    static, or pan (the orbit, the camera turning about the vertical by up to PAN_DEG each way as it goes: the scene
+    sweeps across the image, as under a hand-held camera's turns); at frames `at` (positions in frames, fractions
+    between them included: a shutter's instants; default every frame 0..n-1)."""
     if kind not in CAMERA_PATHS:
         raise ValueError(f"unknown camera path {kind!r}; choose one of {', '.join(CAMERA_PATHS)}")
-    s = np.linspace(0.0, 1.0, n) if kind != "static" else np.zeros(n)
+    at = np.arange(n, dtype=np.float64) if at is None else np.asarray(at, dtype=np.float64)
+    s = at / max(n - 1, 1) if kind != "static" else np.zeros(len(at))
     az = np.radians(rig.azimuth_deg + rig.arc_deg * s)
     h = rig.height + rig.wobble * np.sin(2 * np.pi * s)
     target = np.asarray(rig.target)
     eyes = target + np.stack([rig.radius * np.cos(az), rig.radius * np.sin(az), h], axis=1)
     poses = np.stack([look_at(e, target) for e in eyes])
+    if kind == "pan":
+        for T, yaw in zip(poses, np.radians(PAN_DEG) * np.sin(4 * np.pi * s)):
+            T[:3, :3] = Rotation.from_euler("z", yaw).as_matrix() @ T[:3, :3]
     if kind == "handheld":
         rng = np.random.default_rng(seed)
         shake_t = 0.01 * _smooth_noise(rng, s, 3)  # about 1 cm

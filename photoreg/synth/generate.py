@@ -32,6 +32,7 @@ from .scenes import INSERT_MESH_SCALE, SCENE_KINDS, build_scene
 GENERATOR_VERSION = "1"
 FPS = 30.0  # frame i is at i / FPS seconds
 BANDS = 8
+SHUTTER_SAMPLES = 8  # instants a frame with a shutter time (--shutter) is rendered at and averaged over
 
 
 @dataclass
@@ -55,6 +56,7 @@ class SynthConfig:
     overexpose: float = 1.0  # times the chosen exposure (> 1: the brightest surfaces saturate, as a camera's do)
     insert_texture: bool = False  # the inserted cube textured (scenes.insert_texture), its session albedo = "texture"
     insert_mesh: str | None = None  # mesh file inserted instead of the cube (largest side scenes.INSERT_MESH_SCALE)
+    shutter: float = 0.0  # seconds the shutter is open, centred on the frame's time (motion blur); 0: an instant
     sky: ProceduralSky = field(default_factory=ProceduralSky)
 
     def command_line(self) -> str:
@@ -68,6 +70,7 @@ class SynthConfig:
         args += ["--overexpose", f"{self.overexpose:g}"] if self.overexpose != 1.0 else []
         args += ["--insert-texture"] * self.insert_texture
         args += ["--insert-mesh", self.insert_mesh] if self.insert_mesh else []
+        args += ["--shutter", f"{self.shutter:g}"] if self.shutter else []
         return shlex.join(args)
 
     @property
@@ -89,6 +92,9 @@ class SynthConfig:
             raise ValueError(f"--size {self.width}x{self.height}: need at least 8x8 pixels")
         if not (self.overexpose > 0 and np.isfinite(self.overexpose)):
             raise ValueError(f"--overexpose {self.overexpose}: need a positive factor")
+        if not 0 <= self.shutter <= 1.0 / FPS:
+            raise ValueError(f"--shutter {self.shutter}: seconds in 0..{1.0 / FPS:.4f} (one frame interval at {FPS:g} "
+                             "frames/s)")
         if self.mesh and self.scene != "tabletop":
             raise ValueError(f"--mesh is used by the tabletop scene only (scene is {self.scene!r})")
         if self.insert_mesh and self.insert_texture:
@@ -158,6 +164,19 @@ def _world(cfg: SynthConfig):
             camera_path(cfg.camera, cfg.frames, layout.rig, cfg.seed))
 
 
+def _exposed(scene: MitsubaScene, cfg: SynthConfig, layout, i: int, pose: np.ndarray, seed: int) -> np.ndarray:
+    """Radiance of frame i (camera at `pose` at the frame's time): rendered at that instant, or with a shutter time
+    the mean of SHUTTER_SAMPLES renders at instants spread over it (the spp shared among them), the camera moving
+    along its path: the motion blur of a real camera."""
+    if not cfg.shutter:
+        return scene.render(pose, cfg.spp, seed)
+    m = SHUTTER_SAMPLES
+    at = i + cfg.shutter * FPS * ((np.arange(m) + 0.5) / m - 0.5)
+    poses = camera_path(cfg.camera, cfg.frames, layout.rig, cfg.seed, at=at)
+    spp = max(1, cfg.spp // m)
+    return np.mean([scene.render(p, spp, (seed + k * 7919) % 2**32) for k, p in enumerate(poses)], axis=0)
+
+
 def _insert_scene(cfg: SynthConfig, layout, env_image: np.ndarray, rotation: np.ndarray, K) -> MitsubaScene:
     """The scene with the virtual object added (the insert renders)."""
     return MitsubaScene(layout.objects + [layout.insert.scene_object()], env_image, rotation, K, cfg.max_depth)
@@ -180,7 +199,7 @@ def rerender_inserts(recording: str | Path) -> dict[int, np.ndarray]:
     mitsuba()
     layout, env_image, _, rotation, K, poses = _world(cfg)
     scene = _insert_scene(cfg, layout, env_image, rotation, K)
-    return {i: meta["exposure"] * scene.render(poses[i], cfg.spp, _frame_seed(cfg, i, other=True))
+    return {i: meta["exposure"] * _exposed(scene, cfg, layout, i, poses[i], _frame_seed(cfg, i, other=True))
             for i in meta["insert"]["frames"]}
 
 
@@ -204,7 +223,7 @@ def generate(cfg: SynthConfig, log: Callable[[str], None] | None = print) -> Pat
     for i, pose in enumerate(poses):
         t0 = time.perf_counter()
         seed = _frame_seed(cfg, i)
-        radiance = base.render(pose, cfg.spp, seed)
+        radiance = _exposed(base, cfg, layout, i, pose, seed)
         if exposure is None:
             exposure = cfg.overexpose * choose_exposure(radiance)
         z = base.geometry(pose)
@@ -212,7 +231,7 @@ def generate(cfg: SynthConfig, log: Callable[[str], None] | None = print) -> Pat
         writer.write_frame(i, i / FPS, linear_to_srgb(exposure * radiance), z if noisy is None else noisy, pose,
                            depth_clean=z if cfg.noise else None)
         if i in inserts:
-            lit = exposure * with_object.render(pose, cfg.spp, seed)  # same seed: noise correlated with rgb/
+            lit = exposure * _exposed(with_object, cfg, layout, i, pose, seed)  # same seed: noise correlated with rgb/
             z_obj = with_object.geometry(pose)
             mask = (z_obj > 0) & ((z == 0) | (z_obj < z - 1e-5 * (1.0 + z)))
             name = frame_name(i)
@@ -247,7 +266,11 @@ def generate(cfg: SynthConfig, log: Callable[[str], None] | None = print) -> Pat
                      "emitter_mapping": "v = R^T w; u = atan2(v.x, -v.z)/(2 pi); t = acos(v.y)/pi; "
                                         "texel nodes at u=(j+0.5)/W, t=i/(H-1), bilinear"},
         "camera": {"path": cfg.camera, "rig": layout.rig.to_json(), "hfov_deg": 60.0, "fps": FPS,
-                   "pose": "camera-to-world, OpenCV camera frame (x right, y down, z forward)"},
+                   "pose": "camera-to-world, OpenCV camera frame (x right, y down, z forward)",
+                   "shutter_s": cfg.shutter,
+                   "shutter": (f"colour and inserts the mean of {SHUTTER_SAMPLES} renders over the shutter time, "
+                               "centred on the frame's time and pose; depth at that instant") if cfg.shutter else
+                              "an instant"},
         "render": {"integrator": "path", "max_depth": cfg.max_depth, "spp": cfg.spp, "seed": cfg.seed,
                    "reconstruction_filter": "box"},
         "exposure": exposure,
@@ -275,6 +298,7 @@ def synth_command(args) -> int:
     cfg = SynthConfig(scene=args.scene, out=args.out, frames=args.frames, width=width, height=height, spp=args.spp,
                       env=args.env, yaw=args.yaw, seed=args.seed, camera=args.camera, direct_only=args.direct_only,
                       insert_frames=args.insert_frames, noise=not args.no_noise, mesh=args.mesh,
-                      overexpose=args.overexpose, insert_texture=args.insert_texture, insert_mesh=args.insert_mesh)
+                      overexpose=args.overexpose, insert_texture=args.insert_texture, insert_mesh=args.insert_mesh,
+                      shutter=args.shutter)
     generate(cfg, log=lambda msg: print(msg, flush=True))
     return 0
