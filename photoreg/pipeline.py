@@ -465,7 +465,7 @@ class Pipeline:
             if self.render is not None:
                 with self._timed(t, "render"):
                     composite = self.render(prep.linear, prep.depth, grid, maps, pose, F.sh, gain, diag.sun, t,
-                                            frame.timestamp)
+                                            frame.timestamp, frame.shutter)
                 # the composite keeps the preprocessed colour outside the renderer's region: the frame's own unless
                 # the luminance was denoised
                 region = self.render.region if lc.denoise == "none" else None

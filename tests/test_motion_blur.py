@@ -3,6 +3,7 @@ arrays, and the composites against Mitsuba's renders of a camera turning while i
 (`photoreg synth --camera pan --shutter S`)."""
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import cv2
@@ -110,18 +111,21 @@ def test_the_pipeline_blurs_the_objects_as_the_frame(pan):
     """The blurred recording's session run by the pipeline with render.shutter = 0.016 and without: frame 0 (no
     previous frame) is composited alike; at frame 4, where the camera turns about the vertical, what the objects change
     in the frame is spread sideways (the image motion), as a box blur 3 px wide would, not upright, and the composites
-    differ only inside the blurred one's region, which holds the sharp one's."""
+    differ only inside the blurred one's region, which holds the sharp one's. Frames that carry their own shutter
+    time (Frame.shutter, a streamed frame's `shutter`) are blurred by it whatever render.shutter says."""
     rec = pan["blurred"]
     results = {}
-    for shutter in (0.0, 0.016):
+    for shutter, per_frame in ((0.0, None), (0.016, None), (0.0, 0.016)):
         s = load_session(rec / "session.toml")
         s.render.shutter, s.device = shutter, "cpu"
         validate(s)
         recording = open_recording(rec)
         pipe = Pipeline(s, recording.intrinsics)
-        results[shutter] = [pipe.process(f) for f in iter_frames(recording, range(5))]
+        results[shutter, per_frame] = [pipe.process(dataclasses.replace(f, shutter=per_frame))
+                                       for f in iter_frames(recording, range(5))]
         pipe.close()
-    sharp, blurred = results[0.0], results[0.016]
+    sharp, blurred = results[0.0, None], results[0.016, None]
+    np.testing.assert_array_equal(results[0.0, 0.016][4].composite, blurred[4].composite)
     np.testing.assert_array_equal(sharp[0].composite, blurred[0].composite)
     camera = srgb_to_linear(open_recording(rec).frame(4).color).astype(np.float32)
     sharp_delta, blurred_delta = sharp[4].composite - camera, blurred[4].composite - camera

@@ -75,6 +75,20 @@ def test_frame_encodings_round_trip(recording):
                 np.testing.assert_array_equal(got.color, frame.color)
 
 
+def test_a_frame_s_shutter_time_travels_with_it(recording):
+    """frame.shutter (seconds, optional): a frame's own shutter time (render.motion_blur) is sent and decoded with it;
+    absent it is None (the session's render.shutter); out of 0..1 or not a number it is a bad_field naming it."""
+    frame = first_frame(recording)
+    header, payload = decode(encode_frame(dataclasses.replace(frame, shutter=0.012)))
+    assert header["shutter"] == 0.012 and decode_frame(header, payload, K, default_index=0).shutter == 0.012
+    header, payload = decode(encode_frame(frame))
+    assert "shutter" not in header and decode_frame(header, payload, K, default_index=0).shutter is None
+    for bad in (-0.01, 1.5, "fast", float("nan")):
+        with pytest.raises(ProtocolError, match="frame.shutter") as e:
+            decode_frame({**header, "shutter": bad}, payload, K, default_index=0)
+        assert e.value.code == "bad_field"
+
+
 def test_depth_at_a_lower_resolution_is_scaled_to_the_colour(recording):
     """frame.depth with its own width and height (a phone's LiDAR under its camera): decoded at that size and scaled
     to the colour's like a recording's (io.images.registered_depth), in every depth encoding; another shape or a

@@ -62,16 +62,17 @@ class RenderStage:
 
     def __call__(self, camera: np.ndarray, sensor_depth: np.ndarray, grid: DenseGrid, maps: SurfaceMaps | None,
                  pose: np.ndarray, F: np.ndarray, gain: float = 1.0, sun: dict | None = None,
-                 timings: dict[str, float] | None = None, timestamp: float | None = None) -> np.ndarray:
+                 timings: dict[str, float] | None = None, timestamp: float | None = None,
+                 shutter: float | None = None) -> np.ndarray:
         """Composite (H, W, 3 linear) of one frame: camera linear image, sensor depth (metres, 0 invalid),
         real grid and the frame's ray-cast maps (used when at the render stride, render.stride; else, or with
         None, the stage casts its own), pose (camera-to-world), lighting F (3, B*B), exposure gain and the
         traced light (SolveDiagnostics.sun) when the solve found one. `timings`: gets the ms of its parts,
         'render gbuffer' (the surface ray casts: the window's at every pixel, the render stride's when the frame's
         maps are at another; and the G-buffer), 'render shadows' (the renderer) and 'render composite' (host time;
-        each part ends on its own read-back, so a device's work lands in it). `timestamp` (seconds): with
-        render.shutter, the frame's time, which with the previous frame's gives the camera's motion the insertion is
-        blurred by (render.motion_blur; `region` then grows with it)."""
+        each part ends on its own read-back, so a device's work lands in it). `timestamp` (seconds): the frame's
+        time, which with the previous frame's gives the camera's motion the insertion is blurred by over the shutter
+        time, `shutter` seconds (Frame.shutter) or else render.shutter (render.motion_blur; `region` then grows)."""
         t0 = time.perf_counter()
         rc, lc = self.session.reconstruction, self.session.lighting
         x0, y0, x1, y1 = self.window(pose)
@@ -96,7 +97,8 @@ class RenderStage:
         t2 = time.perf_counter()
         out = composite(camera, self.last)
         self.region = self.last.region
-        m = None if timestamp is None else motion(pose, timestamp, self._previous, self.session.render.shutter)
+        shutter = self.session.render.shutter if shutter is None else shutter
+        m = None if timestamp is None else motion(pose, timestamp, self._previous, shutter)
         if timestamp is not None:
             self._previous = (timestamp, np.array(pose, dtype=np.float64))
         if m is not None:   # the surface each pixel shows: the objects' where they cover it, else the sensor's

@@ -238,6 +238,8 @@ def encode_frame(frame: Frame, index: int | None = None, color: str = "png", dep
               "depth": {"encoding": depth, "offset": len(cbytes), "length": len(dbytes)}}
     if frame.depth_native is not None:
         header["depth"].update(width=metres.shape[1], height=metres.shape[0])
+    if frame.shutter is not None:
+        header["shutter"] = float(frame.shutter)
     return encode(header, cbytes + dbytes)
 
 
@@ -497,6 +499,9 @@ def decode_frame(header: dict, payload: memoryview, intr: Intrinsics, default_in
     index = _count(header.get("index", default_index), "frame.index")
     try:
         timestamp = _number(_get(header, "timestamp", "frame"), "frame.timestamp")
+        shutter = header.get("shutter")
+        if shutter is not None and not 0 <= _number(shutter, "frame.shutter") <= 1:
+            raise ProtocolError("bad_field", f"frame.shutter must be seconds in 0..1, got {shutter!r:.80}")
         pose = header.get("pose")
         if pose is not None:
             try:
@@ -516,4 +521,4 @@ def decode_frame(header: dict, payload: memoryview, intr: Intrinsics, default_in
         e.frame = index
         raise
     return Frame(index=index, timestamp=timestamp, color=color, depth=depth, intrinsics=intr, pose=pose,
-                 source=f"frame message {index}")
+                 source=f"frame message {index}", shutter=None if shutter is None else float(shutter))
