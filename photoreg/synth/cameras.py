@@ -51,8 +51,10 @@ def camera_path(kind: str, n: int, rig: OrbitRig, seed: int = 0, at: np.ndarray 
     between them included: a shutter's instants; default every frame 0..n-1)."""
     if kind not in CAMERA_PATHS:
         raise ValueError(f"unknown camera path {kind!r}; choose one of {', '.join(CAMERA_PATHS)}")
-    at = np.arange(n, dtype=np.float64) if at is None else np.asarray(at, dtype=np.float64)
-    s = at / max(n - 1, 1) if kind != "static" else np.zeros(len(at))
+    if kind == "static":
+        s = np.zeros(n if at is None else len(at))
+    else:   # linspace at the frames themselves: the poses to the bit of the recordings made before `at`
+        s = np.linspace(0.0, 1.0, n) if at is None else np.asarray(at, dtype=np.float64) / max(n - 1, 1)
     az = np.radians(rig.azimuth_deg + rig.arc_deg * s)
     h = rig.height + rig.wobble * np.sin(2 * np.pi * s)
     target = np.asarray(rig.target)
