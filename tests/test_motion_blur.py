@@ -31,7 +31,8 @@ def test_an_insertion_spreads_along_the_image_motion():
     """The camera 10 cm to the left at the previous frame, a wall 2 m ahead: every pixel moved 3 px (fx 0.1 / 2);
     with the shutter open for twice the frame interval the insertion (a vertical line of 1 on a black frame) spreads
     over 6 px along x and not along y, each row keeping its sum, and the region grows to hold it; a blur under half a
-    pixel leaves the composite as it is."""
+    pixel leaves the composite as it is. Without a region (a renderer that names none) the box is where the composite
+    differs from the frame."""
     camera = np.zeros((48, 64, 3), np.float32)
     out = camera.copy()
     out[10:30, 30] = 1.0
@@ -47,6 +48,9 @@ def test_an_insertion_spreads_along_the_image_motion():
     assert np.all(blurred[:9] == 0) and np.all(blurred[31:] == 0)
     x0, y0, x1, y1 = region
     assert x0 <= 27 and x1 >= 34 and y0 <= 10 and y1 >= 30
+    anywhere, box = blur_insertion(out, camera, None, depth, K, Motion(np.eye(4), _moved(-0.1), 2.0))
+    np.testing.assert_array_equal(anywhere, blurred)              # no region: wherever out differs from the frame
+    assert box[0] <= 27 and box[2] >= 34
     still, box = blur_insertion(out, camera, (30, 10, 31, 30), depth, K, Motion(np.eye(4), _moved(-0.1), 0.1))
     assert still is out and box == (30, 10, 31, 30)
 

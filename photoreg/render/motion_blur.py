@@ -16,6 +16,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from photoreg.render.composite import stride_box
 from photoreg.types import Intrinsics
 
 MAX_SAMPLES = 32   # instants along a pixel's motion averaged at most (one per pixel of the longest blur)
@@ -65,14 +66,14 @@ def blur_vectors(depth: np.ndarray, intr: Intrinsics, m: Motion, box: tuple[int,
 
 
 def blur_insertion(out: np.ndarray, camera: np.ndarray, region: tuple[int, int, int, int] | None,
-                   depth: np.ndarray, intr: Intrinsics, m: Motion) -> tuple[np.ndarray, tuple[int, int, int, int]]:
-    """(composite, its region) with the insertion `out - camera` inside `region` (None: the whole frame) blurred
-    along the camera's motion `m` (module docstring); `depth` (H, W) metres of the surface each pixel shows (0 or
-    non-finite: unknown). The region grows by half the longest blur; `out` is returned as it is where that is
+                   depth: np.ndarray, intr: Intrinsics, m: Motion) -> tuple[np.ndarray, tuple[int, int, int, int] | None]:
+    """(composite, its region) with the insertion `out - camera` inside `region` (None: wherever they differ)
+    blurred along the camera's motion `m` (module docstring); `depth` (H, W) metres of the surface each pixel shows
+    (0 or non-finite: unknown). The region grows by half the longest blur; `out` is returned as it is where that is
     under MIN_BLUR_PX or no depth is known."""
     H, W = out.shape[:2]
-    box = region if region is not None else (0, 0, W, H)
-    if not (box[2] > box[0] and box[3] > box[1]):
+    box = region if region is not None else stride_box(np.any(out != camera, axis=-1), 1, (H, W))
+    if box is None or not (box[2] > box[0] and box[3] > box[1]):
         return out, box
     known = np.isfinite(depth) & (depth > 0)
     if not known[box[1]:box[3], box[0]:box[2]].any():
