@@ -22,6 +22,7 @@ from photoreg.types import Intrinsics
 MAX_SAMPLES = 32   # instants along a pixel's motion averaged at most (one per pixel of the longest blur)
 MIN_BLUR_PX = 0.5  # a longest blur below this leaves the composite as it is
 MAX_GAP_S = 0.25   # poses further apart than this do not give the camera's velocity over a shutter time
+Box = tuple[int, int, int, int]   # pixels (x0, y0, x1, y1), x1 and y1 exclusive
 
 
 @dataclass
@@ -46,7 +47,7 @@ def motion(pose: np.ndarray, timestamp: float, previous: tuple[float, np.ndarray
     return Motion(np.asarray(pose, np.float64), np.asarray(previous[1], np.float64), shutter / dt)
 
 
-def blur_vectors(depth: np.ndarray, intr: Intrinsics, m: Motion, box: tuple[int, int, int, int]) -> np.ndarray:
+def blur_vectors(depth: np.ndarray, intr: Intrinsics, m: Motion, box: Box) -> np.ndarray:
     """(h, w, 2) image motion b (pixels, x then y) during the shutter of the surfaces at camera depth `depth`
     (the box's pixels, metres, finite and > 0) in the pixel box (x0, y0, x1, y1); 0 where the surface lies behind
     the previous camera."""
@@ -65,8 +66,8 @@ def blur_vectors(depth: np.ndarray, intr: Intrinsics, m: Motion, box: tuple[int,
     return b.astype(np.float32)
 
 
-def blur_insertion(out: np.ndarray, camera: np.ndarray, region: tuple[int, int, int, int] | None,
-                   depth: np.ndarray, intr: Intrinsics, m: Motion) -> tuple[np.ndarray, tuple[int, int, int, int] | None]:
+def blur_insertion(out: np.ndarray, camera: np.ndarray, region: Box | None, depth: np.ndarray, intr: Intrinsics,
+                   m: Motion) -> tuple[np.ndarray, Box | None]:
     """(composite, its region) with the insertion `out - camera` inside `region` (None: wherever they differ)
     blurred along the camera's motion `m` (module docstring); `depth` (H, W) metres of the surface each pixel shows
     (0 or non-finite: unknown). The region grows by half the longest blur; `out` is returned as it is where that is
@@ -81,7 +82,7 @@ def blur_insertion(out: np.ndarray, camera: np.ndarray, region: tuple[int, int, 
     fill = float(np.median(depth[box[1]:box[3], box[0]:box[2]][known[box[1]:box[3], box[0]:box[2]]]))
     z = np.where(known, depth, fill)
 
-    def vectors(bx: tuple[int, int, int, int]) -> np.ndarray:
+    def vectors(bx: Box) -> np.ndarray:
         return blur_vectors(z[bx[1]:bx[3], bx[0]:bx[2]], intr, m, bx)
 
     longest = float(np.linalg.norm(vectors(box), axis=-1).max())
