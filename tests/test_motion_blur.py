@@ -15,7 +15,8 @@ from photoreg.config import Session, load_session, validate
 from photoreg.io.images import read_exr, srgb_to_linear
 from photoreg.io.recording import iter_frames, open_recording
 from photoreg.pipeline import Pipeline
-from photoreg.render.motion_blur import MAX_GAP_S, Motion, blur_insertion, motion
+from photoreg.render.composite import Layers, composite, layers_of
+from photoreg.render.motion_blur import MAX_GAP_S, Motion, blurred_composite, motion
 from photoreg.types import Intrinsics
 
 K = Intrinsics(64, 48, 60.0, 60.0, 31.5, 23.5)
@@ -27,18 +28,25 @@ def _moved(dx: float) -> np.ndarray:
     return T
 
 
+def _line_layers() -> Layers:
+    """An object of colour 1 covering a vertical line (column 30, rows 10-29) of a 64 x 48 frame."""
+    alpha = np.zeros((48, 64), np.float32)
+    alpha[10:30, 30] = 1.0
+    return Layers(np.repeat(alpha[..., None], 3, axis=-1), alpha, np.ones((48, 64, 3), np.float32),
+                  region=(30, 10, 31, 30))
+
+
 def test_an_insertion_spreads_along_the_image_motion():
     """The camera 10 cm to the left at the previous frame, a wall 2 m ahead: every pixel moved 3 px (fx 0.1 / 2);
-    with the shutter open for twice the frame interval the insertion (a vertical line of 1 on a black frame) spreads
+    with the shutter open for twice the frame interval the object (a vertical line of 1 on a black frame) spreads
     over 6 px along x and not along y, each row keeping its sum, and the region grows to hold it; a blur under half a
-    pixel leaves the composite as it is. Without a region (a renderer that names none) the box is where the composite
-    differs from the frame."""
+    pixel gives the sharp composite. Without a region (a renderer that names none) the box is where the layers change
+    the frame."""
     camera = np.zeros((48, 64, 3), np.float32)
-    out = camera.copy()
-    out[10:30, 30] = 1.0
     depth = np.full((48, 64), 2.0, np.float32)
     depth[0, 0] = np.nan                                      # unknown depth is filled, not propagated
-    blurred, region = blur_insertion(out, camera, (30, 10, 31, 30), depth, K, Motion(np.eye(4), _moved(-0.1), 2.0))
+    layers = _line_layers()
+    blurred, region = blurred_composite(camera, layers, depth, K, Motion(np.eye(4), _moved(-0.1), 2.0))
     assert np.isfinite(blurred).all() and blurred.min() >= 0
     rows = blurred[12:28, :, 0]
     np.testing.assert_allclose(rows.sum(axis=1), 1.0, atol=1e-5)
@@ -48,11 +56,31 @@ def test_an_insertion_spreads_along_the_image_motion():
     assert np.all(blurred[:9] == 0) and np.all(blurred[31:] == 0)
     x0, y0, x1, y1 = region
     assert x0 <= 27 and x1 >= 34 and y0 <= 10 and y1 >= 30
-    anywhere, box = blur_insertion(out, camera, None, depth, K, Motion(np.eye(4), _moved(-0.1), 2.0))
-    np.testing.assert_array_equal(anywhere, blurred)              # no region: wherever out differs from the frame
+    anywhere, box = blurred_composite(camera, dataclasses.replace(layers, region=None), depth, K,
+                                      Motion(np.eye(4), _moved(-0.1), 2.0))
+    np.testing.assert_array_equal(anywhere, blurred)
     assert box[0] <= 27 and box[2] >= 34
-    still, box = blur_insertion(out, camera, (30, 10, 31, 30), depth, K, Motion(np.eye(4), _moved(-0.1), 0.1))
-    assert still is out and box == (30, 10, 31, 30)
+    still, box = blurred_composite(camera, layers, depth, K, Motion(np.eye(4), _moved(-0.1), 0.1))
+    np.testing.assert_array_equal(still, composite(camera, layers))
+    assert box == (30, 10, 31, 30)
+
+
+def test_the_frame_does_not_show_through_a_blurred_object():
+    """An opaque object (colour 0.5) 20 px wide over a striped frame, blurred by 6 px: well inside it the composite is
+    the object's colour alone, the stripes behind it nowhere (blurring the composite less the frame let the frame's
+    stripes less their blur through), and at its edges the frame shows through by the object's blurred coverage."""
+    camera = np.zeros((48, 64, 3), np.float32)
+    camera[:, ::2] = 1.0                                       # stripes one pixel wide
+    alpha = np.zeros((48, 64), np.float32)
+    alpha[10:30, 20:40] = 1.0
+    layers = Layers(np.full((48, 64, 3), 0.5, np.float32) * alpha[..., None], alpha, np.ones((48, 64, 3), np.float32),
+                    region=(20, 10, 40, 30))
+    out, _ = blurred_composite(camera, layers, np.full((48, 64), 2.0, np.float32), K,
+                               Motion(np.eye(4), _moved(-0.1), 2.0))
+    np.testing.assert_allclose(out[12:28, 24:36], 0.5, atol=1e-6)
+    edge = out[12:28, 18:22].mean()
+    assert 0.3 < edge < 0.7                                    # half object, half the stripes' mean (0.5)
+    np.testing.assert_array_equal(out[:, :14], camera[:, :14])
 
 
 def test_motion_needs_a_shutter_and_a_recent_previous_frame():
@@ -89,22 +117,24 @@ def _roi(rec) -> np.ndarray:
 
 
 def test_the_true_insertion_blurred_matches_mitsuba_s(pan):
-    """Mitsuba's insertion at frame 4 of the sharp recording (insert less frame), put on the blurred frame and blurred
-    by the camera's motion from frame 3 to 4 at the shutter's share (0.016 s x 30 frames/s), comes within half the
-    error of the same insertion left sharp, against Mitsuba's blurred insert render; a share twice too long does
-    worse than the right one."""
+    """Mitsuba's insertion at frame 4 of the sharp recording (its insert render as layers over its frame:
+    composite.layers_of), composited over the blurred frame and blurred by the camera's motion from frame 3 to 4 at
+    the shutter's share (0.016 s x 30 frames/s), comes within half the error of the same insertion left sharp, against
+    Mitsuba's blurred insert render; a share twice too long does worse than the right one."""
     meta = json.loads((pan["blurred"] / "scene.json").read_text())
     assert meta["camera"]["shutter_s"] == 0.016 and "--shutter 0.016" in meta["command"]
     sharp, blurred = open_recording(pan["sharp"]), open_recording(pan["blurred"])
     f1, f2, b2 = sharp.frame(3), sharp.frame(4), blurred.frame(4)
-    insertion = read_exr(pan["sharp"] / "insert" / "000004.exr") - srgb_to_linear(f2.color)
+    layers = layers_of(read_exr(pan["sharp"] / "insert" / "000004.exr"), srgb_to_linear(f2.color),
+                       cv2.imread(str(pan["sharp"] / "insert_mask" / "000004.png"))[..., 0] > 0)
     cam = srgb_to_linear(b2.color).astype(np.float32)
     truth, roi = read_exr(pan["blurred"] / "insert" / "000004.exr"), _roi(pan["sharp"])
 
     def error(share: float) -> float:
-        out = (cam + insertion).astype(np.float32)
         if share:
-            out, _ = blur_insertion(out, cam, None, f2.depth, sharp.intrinsics, Motion(f2.pose, f1.pose, share))
+            out, _ = blurred_composite(cam, layers, f2.depth, sharp.intrinsics, Motion(f2.pose, f1.pose, share))
+        else:
+            out = composite(cam, layers)
         return float(np.sqrt(np.mean((out[roi] - truth[roi]) ** 2)))
 
     none, right, long = error(0.0), error(0.48), error(0.96)
@@ -114,11 +144,12 @@ def test_the_true_insertion_blurred_matches_mitsuba_s(pan):
 def test_the_pipeline_blurs_the_objects_as_the_frame(pan):
     """The blurred recording's session run by the pipeline with render.shutter = 0.016 and without: frame 0 (no
     previous frame) is composited alike; at frame 4, where the camera turns about the vertical, what the objects change
-    in the frame is spread sideways (the image motion), as a box blur 3 px wide would, not upright, and the composites
-    differ only inside the blurred one's region, which holds the sharp one's. Frames that carry their own shutter
-    time (Frame.shutter, a streamed frame's `shutter`) are blurred by it whatever render.shutter says."""
+    in the frame is spread sideways (the image motion), as its layers box-blurred 3 px wide would be, not upright,
+    and the composites differ only inside the blurred one's region, which holds the sharp one's. Frames that carry
+    their own shutter time (Frame.shutter, a streamed frame's `shutter`) are blurred by it whatever render.shutter
+    says."""
     rec = pan["blurred"]
-    results = {}
+    results, layers = {}, {}
     for shutter, per_frame in ((0.0, None), (0.016, None), (0.0, 0.016)):
         s = load_session(rec / "session.toml")
         s.render.shutter, s.device = shutter, "cpu"
@@ -127,15 +158,18 @@ def test_the_pipeline_blurs_the_objects_as_the_frame(pan):
         pipe = Pipeline(s, recording.intrinsics)
         results[shutter, per_frame] = [pipe.process(dataclasses.replace(f, shutter=per_frame))
                                        for f in iter_frames(recording, range(5))]
+        layers[shutter, per_frame] = pipe.render.last   # frame 4's
         pipe.close()
     sharp, blurred = results[0.0, None], results[0.016, None]
     np.testing.assert_array_equal(results[0.0, 0.016][4].composite, blurred[4].composite)
     np.testing.assert_array_equal(sharp[0].composite, blurred[0].composite)
     camera = srgb_to_linear(open_recording(rec).frame(4).color).astype(np.float32)
-    sharp_delta, blurred_delta = sharp[4].composite - camera, blurred[4].composite - camera
+    alpha, frame_4 = layers[0.0, None].alpha[..., None], layers[0.0, None]
 
-    def misfit(kernel: tuple[int, int]) -> float:   # the sharp insertion box-blurred (width, height) against ours
-        return float(np.abs(cv2.blur(sharp_delta, kernel) - blurred_delta).sum())
+    def misfit(kernel: tuple[int, int]) -> float:   # frame 4's layers box-blurred (width, height) against ours
+        frame = cv2.blur((1 - alpha) * frame_4.ratio, kernel, borderType=cv2.BORDER_REPLICATE)
+        objects = cv2.blur(alpha * frame_4.colour, kernel, borderType=cv2.BORDER_REPLICATE)
+        return float(np.abs(camera * frame + objects - blurred[4].composite).sum())
 
     sideways, upright, none = misfit((3, 1)), misfit((1, 3)), misfit((1, 1))
     assert sideways < 0.3 * none and sideways < 0.3 * upright, (sideways, upright, none)

@@ -238,6 +238,17 @@ def refine_seam(ratio: np.ndarray, inp: RenderInput, near: np.ndarray,
         set_seam(ratio, inp, band, ratio_at(inp.surface.vertex[band], inp.surface.normal[band]))
 
 
+def layers_of(image: np.ndarray, camera: np.ndarray, mask: np.ndarray) -> Layers:
+    """The Layers that composite into `image` (H, W, 3 linear) over `camera` with the objects covering the bool `mask`:
+    their colour on the mask, elsewhere the ratio image / camera (1 where the camera is black). Turns an independent
+    renderer's insert render into layers (benchmarks of the motion blur, render.motion_blur)."""
+    alpha = mask.astype(np.float32)
+    safe = camera > 1e-6
+    ratio = np.where(safe, image / np.where(safe, camera, 1.0), 1.0)
+    ratio[mask] = 1.0
+    return Layers(np.where(mask[..., None], image, 0.0).astype(np.float32), alpha, ratio.astype(np.float32))
+
+
 def composite(camera: np.ndarray, layers: Layers) -> np.ndarray:
     """The one blend: (1 - alpha) * cam * ratio + alpha * colour, linear float32, finite; outside
     layers.region the camera frame itself (the full-frame blend was most of the render stage's host time

@@ -1,9 +1,9 @@
 """Motion blur of the insertion, matching the camera's (render.shutter).
 
 A camera that moves while its shutter is open blurs the frame along each pixel's image motion, and an object
-composited sharp into such a frame stands out from it. The insertion (the composite less the camera frame: the
-objects and the shadows they cast) is blurred along the same motion: pixel x takes the mean of the insertion at
-x + u b(x), u spread evenly over [-1/2, 1/2], where b(x) is how far the surface seen at x moves in the image while
+composited sharp into such a frame stands out from it. What the renderer's layers change (the objects and the shadows
+they cast) is blurred along the same motion: at pixel x the layers are the mean of theirs at x + u b(x), u spread
+evenly over [-1/2, 1/2], where b(x) is how far the surface seen at x moves in the image while
 the shutter is open: its displacement between the previous frame's pose and this one's, times shutter / (t - t_prev)
 (a shutter centred on the frame's time, the camera's velocity taken as constant across it). The surface is the
 virtual one where the G-buffer covers a pixel, else the real one (sensor depth, its holes at the box's median depth).
@@ -16,7 +16,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from photoreg.render.composite import stride_box
+from photoreg.render.composite import Layers, composite, stride_box
 from photoreg.types import Intrinsics
 
 MAX_SAMPLES = 32   # instants along a pixel's motion averaged at most (one per pixel of the longest blur)
@@ -66,19 +66,20 @@ def blur_vectors(depth: np.ndarray, intr: Intrinsics, m: Motion, box: Box) -> np
     return b.astype(np.float32)
 
 
-def blur_insertion(out: np.ndarray, camera: np.ndarray, region: Box | None, depth: np.ndarray, intr: Intrinsics,
-                   m: Motion) -> tuple[np.ndarray, Box | None]:
-    """(composite, its region) with the insertion `out - camera` inside `region` (None: wherever they differ)
-    blurred along the camera's motion `m` (module docstring); `depth` (H, W) metres of the surface each pixel shows
-    (0 or non-finite: unknown). The region grows by half the longest blur; `out` is returned as it is where that is
-    under MIN_BLUR_PX or no depth is known."""
-    H, W = out.shape[:2]
-    box = region if region is not None else stride_box(np.any(out != camera, axis=-1), 1, (H, W))
-    if box is None or not (box[2] > box[0] and box[3] > box[1]):
-        return out, box
+def blurred_composite(camera: np.ndarray, layers: Layers, depth: np.ndarray, intr: Intrinsics,
+                      m: Motion) -> tuple[np.ndarray, Box | None]:
+    """(composite, its region) of a renderer's `layers` over the camera frame with what they change blurred along the
+    camera's motion `m` (module docstring): the frame's factor (1 - alpha) ratio and the objects' term alpha colour
+    are each averaged along the motion, so the frame shows through the objects only where their blurred coverage
+    lets it (blurring the composite less the frame let the frame's own detail through them). `depth` (H, W) metres of
+    the surface each pixel shows (0 or non-finite: unknown). The region grows by half the longest blur; the sharp
+    composite (composite.composite) where that is under MIN_BLUR_PX or no depth is known."""
+    H, W = camera.shape[:2]
+    box = layers.region if layers.region is not None else stride_box(
+        (layers.alpha > 0) | (layers.ratio != 1.0).any(axis=-1), 1, (H, W))
     known = np.isfinite(depth) & (depth > 0)
-    if not known[box[1]:box[3], box[0]:box[2]].any():
-        return out, box
+    if box is None or not (box[2] > box[0] and box[3] > box[1]) or not known[box[1]:box[3], box[0]:box[2]].any():
+        return composite(camera, layers), layers.region
     fill = float(np.median(depth[box[1]:box[3], box[0]:box[2]][known[box[1]:box[3], box[0]:box[2]]]))
     z = np.where(known, depth, fill)
 
@@ -87,20 +88,22 @@ def blur_insertion(out: np.ndarray, camera: np.ndarray, region: Box | None, dept
 
     longest = float(np.linalg.norm(vectors(box), axis=-1).max())
     if longest < MIN_BLUR_PX:
-        return out, box
+        return composite(camera, layers), layers.region
     reach = int(math.ceil(longest / 2)) + 1
     grown = (max(box[0] - reach, 0), max(box[1] - reach, 0), min(box[2] + reach, W), min(box[3] + reach, H))
     x0, y0, x1, y1 = grown
     b = vectors(grown)
-    longest = float(np.linalg.norm(b, axis=-1).max())
-    n = min(MAX_SAMPLES, int(math.ceil(longest)) + 1)
-    cam = np.nan_to_num(camera[y0:y1, x0:x1].astype(np.float32))
-    delta = out[y0:y1, x0:x1] - cam
+    n = min(MAX_SAMPLES, int(math.ceil(float(np.linalg.norm(b, axis=-1).max()))) + 1)
+    rows, cols = slice(y0, y1), slice(x0, x1)
+    alpha = layers.alpha[rows, cols, None]
+    frame = ((1.0 - alpha) * layers.ratio[rows, cols]).astype(np.float32)   # 1 outside the layers' region
+    objects = (alpha * layers.colour[rows, cols]).astype(np.float32)        # 0 there
     ys, xs = np.mgrid[0:y1 - y0, 0:x1 - x0].astype(np.float32)
-    acc = np.zeros_like(delta)
-    for u in (np.arange(n) + 0.5) / n - 0.5:
-        acc += cv2.remap(delta, xs + np.float32(u) * b[..., 0], ys + np.float32(u) * b[..., 1], cv2.INTER_LINEAR,
-                         borderMode=cv2.BORDER_CONSTANT, borderValue=0.0)
-    blurred = out.copy()
-    blurred[y0:y1, x0:x1] = np.maximum(cam + acc / n, 0.0)
-    return blurred, grown
+    frame_sum, objects_sum = np.zeros_like(frame), np.zeros_like(objects)
+    for u in (np.arange(n, dtype=np.float32) + 0.5) / n - 0.5:
+        mx, my = xs + u * b[..., 0], ys + u * b[..., 1]
+        frame_sum += cv2.remap(frame, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=(1, 1, 1))
+        objects_sum += cv2.remap(objects, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+    out = np.nan_to_num(np.array(camera, dtype=np.float32), nan=0.0, posinf=0.0, neginf=0.0)
+    out[rows, cols] = np.maximum(out[rows, cols] * frame_sum / n + objects_sum / n, 0.0)
+    return out, grown

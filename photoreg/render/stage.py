@@ -12,7 +12,7 @@ from photoreg.kernels.raycast import SurfaceMaps, raycast_surface
 from photoreg.kernels.transfer import make_direction_set
 from photoreg.render.composite import Layers, RenderInput, composite
 from photoreg.render.gbuffer import GBufferRenderer
-from photoreg.render.motion_blur import blur_insertion, motion
+from photoreg.render.motion_blur import blurred_composite, motion
 from photoreg.render.registry import get_renderer
 from photoreg.render.scene import load_scene, voxel_grid
 from photoreg.types import Intrinsics
@@ -95,17 +95,17 @@ class RenderStage:
         t1 = time.perf_counter()
         self.last_input, self.last = inp, self.renderer(inp)
         t2 = time.perf_counter()
-        out = composite(camera, self.last)
-        self.region = self.last.region
         shutter = self.session.render.shutter if shutter is None else shutter
         m = None if timestamp is None else motion(pose, timestamp, self._previous, shutter)
         if timestamp is not None:
             self._previous = (timestamp, np.array(pose, dtype=np.float64))
-        if m is not None:   # the surface each pixel shows: the objects' where they cover it, else the sensor's
+        if m is None:
+            out, self.region = composite(camera, self.last), self.last.region
+        else:   # the surface each pixel shows: the objects' where they cover it, else the sensor's
             depth = np.nan_to_num(sensor_depth, nan=0.0, posinf=0.0, neginf=0.0)
             box, cover = gb.box, gb.coverage[gb.box] > 0.5
             depth[box][cover] = gb.window_depth[cover]
-            out, self.region = blur_insertion(out, camera, self.region, depth, self.intrinsics, m)
+            out, self.region = blurred_composite(camera, self.last, depth, self.intrinsics, m)
         if timings is not None:
             for part, ms in (("gbuffer", t1 - t0), ("shadows", t2 - t1), ("composite", time.perf_counter() - t2)):
                 timings["render " + part] = ms * 1000.0
