@@ -155,6 +155,7 @@ class ObjectConfig:
 
 
 ALBEDO_TEXTURE = "texture"   # objects.albedo: the mesh's base-colour texture instead of one colour
+SHUTTER_CAMERA = "camera"    # render.shutter: the shutter time the camera gives (Frame.shutter)
 
 
 @dataclass
@@ -164,8 +165,10 @@ class RenderConfig:
     stride: int = 4               # the shadow ratio sampled every n-th pixel (full resolution along the objects'
                                   # silhouettes), whatever lighting.stride is
     gbuffer: str = "pyrender"     # pyrender (rasterised, OpenGL) | raycast (Warp rays through the objects' BVH)
-    shutter: float = 0.0          # seconds the camera's shutter is open: the objects and their shadows blurred by
-                                  # the camera's motion as the frame is (photoreg.render.motion_blur); 0: sharp
+    shutter: float | str = SHUTTER_CAMERA  # seconds the camera's shutter is open: the objects and their shadows
+                                  # blurred by the camera's motion as the frame is (photoreg.render.motion_blur);
+                                  # "camera": each frame's own (the recording's calibration, a streamed frame's), else
+                                  # sharp
 
 
 @dataclass
@@ -340,7 +343,9 @@ def validate(s: Session) -> None:
               (0 < L.new_view_share <= 1, "lighting.new_view_share must be in (0, 1]"),
               (s.render.light_rays >= 0, "render.light_rays must be >= 0"),
               (s.render.stride >= 1, "render.stride must be >= 1"),
-              (0 <= s.render.shutter <= 1, "render.shutter must be seconds in 0..1"),
+              (s.render.shutter == SHUTTER_CAMERA or (not isinstance(s.render.shutter, str)
+                                                      and 0 <= s.render.shutter <= 1),
+               f"render.shutter must be seconds in 0..1 or {SHUTTER_CAMERA!r}"),
               (not s.output.video or bool(s.objects), "output.video needs [[objects]]: the video shows the composites"),
               (R.voxel_size > 0, "reconstruction.voxel_size must be > 0"),
               (0 < R.depth_min < R.depth_max, "reconstruction.depth_min must be > 0 and < depth_max"),

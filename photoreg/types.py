@@ -62,8 +62,8 @@ class Frame:
     # phone's LiDAR; io.images.registered_depth scaled it up into `depth`), None where it is at the colour's: what
     # `photoreg stream` sends, the server scaling it up the same way
     depth_native: np.ndarray | None = None
-    shutter: float | None = None    # seconds the shutter was open, where the camera says (a streamed frame's
-                                    # `shutter`); None: the session's render.shutter
+    shutter: float | None = None    # seconds the shutter was open, where the camera says (the recording's
+                                    # calibration, a streamed frame's `shutter`): the objects' motion blur
 
 
 @dataclass

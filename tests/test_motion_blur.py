@@ -92,9 +92,10 @@ def test_motion_needs_a_shutter_and_a_recent_previous_frame():
     assert motion(pose, 1.0, (0.9, pose), 0.0) is None and motion(pose, 1.0, None, 0.01) is None
     assert motion(pose, 1.0, (1.0, pose), 0.01) is None and motion(pose, 1.0, (1.0 - 2 * MAX_GAP_S, pose), 0.01) is None
     s = Session()
-    s.render.shutter = -0.01
-    with pytest.raises(ValueError, match="render.shutter"):
-        validate(s)
+    for bad in (-0.01, "fast"):
+        s.render.shutter = bad
+        with pytest.raises(ValueError, match="render.shutter must be seconds in 0..1 or 'camera'"):
+            validate(s)
 
 
 @pytest.fixture(scope="module")
@@ -145,26 +146,31 @@ def test_the_pipeline_blurs_the_objects_as_the_frame(pan):
     """The blurred recording's session run by the pipeline with render.shutter = 0.016 and without: frame 0 (no
     previous frame) is composited alike; at frame 4, where the camera turns about the vertical, what the objects change
     in the frame is spread sideways (the image motion), as its layers box-blurred 3 px wide would be, not upright,
-    and the composites differ only inside the blurred one's region, which holds the sharp one's. Frames that carry
-    their own shutter time (Frame.shutter, a streamed frame's `shutter`) are blurred by it whatever render.shutter
-    says."""
+    and the composites differ only inside the blurred one's region, which holds the sharp one's. With
+    render.shutter = "camera" (the default) each frame's own shutter time holds (Frame.shutter: here the recording's
+    intrinsics.json, written by the generator; a streamed frame's `shutter`); a number as render.shutter overrides
+    it."""
     rec = pan["blurred"]
     results, layers = {}, {}
-    for shutter, per_frame in ((0.0, None), (0.016, None), (0.0, 0.016)):
+    keep = "the recording's"   # frames as read: the shutter of the recording's intrinsics.json (0.016)
+    for shutter, per_frame in ((0.0, keep), (0.016, keep), ("camera", keep), ("camera", 0.0)):
         s = load_session(rec / "session.toml")
         s.render.shutter, s.device = shutter, "cpu"
         validate(s)
         recording = open_recording(rec)
         pipe = Pipeline(s, recording.intrinsics)
-        results[shutter, per_frame] = [pipe.process(dataclasses.replace(f, shutter=per_frame))
-                                       for f in iter_frames(recording, range(5))]
+        frames = [f if per_frame is keep else dataclasses.replace(f, shutter=per_frame)
+                  for f in iter_frames(recording, range(5))]
+        results[shutter, per_frame] = [pipe.process(f) for f in frames]
         layers[shutter, per_frame] = pipe.render.last   # frame 4's
         pipe.close()
-    sharp, blurred = results[0.0, None], results[0.016, None]
-    np.testing.assert_array_equal(results[0.0, 0.016][4].composite, blurred[4].composite)
+    sharp, blurred = results[0.0, keep], results[0.016, keep]
+    assert open_recording(rec).shutter == 0.016
+    np.testing.assert_array_equal(results["camera", keep][4].composite, blurred[4].composite)
+    np.testing.assert_array_equal(results["camera", 0.0][4].composite, sharp[4].composite)
     np.testing.assert_array_equal(sharp[0].composite, blurred[0].composite)
     camera = srgb_to_linear(open_recording(rec).frame(4).color).astype(np.float32)
-    alpha, frame_4 = layers[0.0, None].alpha[..., None], layers[0.0, None]
+    alpha, frame_4 = layers[0.0, keep].alpha[..., None], layers[0.0, keep]
 
     def misfit(kernel: tuple[int, int]) -> float:   # frame 4's layers box-blurred (width, height) against ours
         frame = cv2.blur((1 - alpha) * frame_4.ratio, kernel, borderType=cv2.BORDER_REPLICATE)

@@ -286,6 +286,7 @@ def _frame_error(root: Path, i: int = 1) -> Exception:
 @pytest.mark.parametrize("case", [
     "missing depth.txt", "unsorted rgb.txt", "malformed rgb.txt", "bad timestamp", "non-finite pose",
     "non-unit quaternion", "broken intrinsics.json", "intrinsics.json missing key", "intrinsics.txt unknown key",
+    "intrinsics.json bad shutter", "intrinsics.txt bad shutter",
 ])
 def test_index_errors_name_file_and_line(tmp_path, case):
     write_native(tmp_path)
@@ -316,6 +317,14 @@ def test_index_errors_name_file_and_line(tmp_path, case):
     elif case == "intrinsics.json missing key":
         js.write_text('{"width": 8, "height": 6, "fx": 10, "fy": 10, "cx": 3.5}')
         where = f"{js}: missing cy"
+    elif case == "intrinsics.json bad shutter":
+        js.write_text(json.dumps({**json.loads(js.read_text()), "shutter": 16}))
+        where = f"{js}: shutter must be seconds in 0..1, found 16"
+    elif case == "intrinsics.txt bad shutter":
+        js.unlink()
+        txt = tmp_path / "intrinsics.txt"
+        txt.write_text("fx 10\nfy 11\ncx 3.5\ncy 2.5\nshutter -0.01\n")
+        where = f"{txt}:5: shutter must be seconds in 0..1"
     else:
         js.unlink()
         txt = tmp_path / "intrinsics.txt"
@@ -370,6 +379,24 @@ def test_depth_registered_at_another_resolution_is_scaled_to_the_colour(tmp_path
     np.testing.assert_array_equal(got, np.kron(half, np.ones((2, 2))).astype(np.float32) / np.float32(DEPTH_SCALE))
     cv2.imwrite(str(depth), raws[1][:, : W // 2 + 1].copy())
     assert str(depth) in str(_frame_error(tmp_path)) and "another shape" in str(_frame_error(tmp_path))
+
+
+def test_a_calibration_s_shutter_time_reaches_every_frame(tmp_path, capsys):
+    """`shutter` (seconds) in intrinsics.json or intrinsics.txt: the recording's and each frame's (Frame.shutter, what
+    the objects' motion blur takes), shown by `photoreg info`; without it None."""
+    write_native(tmp_path)
+    rec = open_recording(tmp_path)
+    assert rec.shutter is None and rec.frame(0).shutter is None
+    js = tmp_path / "intrinsics.json"
+    js.write_text(json.dumps({**json.loads(js.read_text()), "shutter": 0.012}))
+    rec = open_recording(tmp_path)
+    assert rec.shutter == 0.012 and {rec.frame(i).shutter for i in range(len(rec))} == {0.012}
+    assert main(["info", str(tmp_path)]) == 0 and "shutter:     12 ms" in capsys.readouterr().out
+    k = rec.intrinsics
+    js.unlink()
+    (tmp_path / "intrinsics.txt").write_text(f"fx {k.fx}\nfy {k.fy}\ncx {k.cx}\ncy {k.cy}\nwidth {k.width}\n"
+                                             f"height {k.height}\ndepth_scale {k.depth_scale}\nshutter 0.02\n")
+    assert open_recording(tmp_path).frame(1).shutter == 0.02
 
 
 def test_unknown_tum_sensor_asks_for_intrinsics(tmp_path):

@@ -12,13 +12,21 @@ from ..types import Intrinsics
 from .recording import data_lines, parse_floats
 
 VGA = (640, 480)  # image size of every supported sensor (Kinect v1 class) when a file does not give one
-TXT_KEYS = {"fx": 1, "fy": 1, "cx": 1, "cy": 1, "depth_scale": 1, "width": 1, "height": 1, "dist": 5}
+TXT_KEYS = {"fx": 1, "fy": 1, "cx": 1, "cy": 1, "depth_scale": 1, "width": 1, "height": 1, "dist": 5, "shutter": 1}
 
 
 class Calibration(NamedTuple):
     intrinsics: Intrinsics
     distortion: np.ndarray | None  # k1 k2 p1 p2 k3, None when unknown
     source: str                    # where it came from, for notes and error messages
+    shutter: float | None = None   # seconds the shutter is open for each frame, when the file says (motion blur)
+
+
+def checked_shutter(value, where: str) -> float:
+    """A calibration file's shutter time: seconds in 0..1."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 <= value <= 1:
+        raise ValueError(f"{where}: shutter must be seconds in 0..1, found {value!r}")
+    return float(value)
 
 
 def checked_intrinsics(values: dict, where: str) -> Intrinsics:
@@ -36,8 +44,9 @@ def checked_intrinsics(values: dict, where: str) -> Intrinsics:
                       float(values["cx"]), float(values["cy"]), float(values["depth_scale"]))
 
 
-def read_intrinsics_json(path: Path, depth_scale: float) -> Intrinsics:
-    """intrinsics.json {width, height, fx, fy, cx, cy, depth_scale}; depth_scale defaults to `depth_scale`."""
+def read_intrinsics_json(path: Path, depth_scale: float) -> tuple[Intrinsics, float | None]:
+    """(intrinsics, shutter) of intrinsics.json {width, height, fx, fy, cx, cy, depth_scale, shutter}; depth_scale
+    defaults to `depth_scale`, shutter (seconds) to None."""
     try:
         data = json.loads(path.read_text())
     except json.JSONDecodeError as e:
@@ -51,14 +60,16 @@ def read_intrinsics_json(path: Path, depth_scale: float) -> Intrinsics:
     for key in ("width", "height", "fx", "fy", "cx", "cy", "depth_scale"):
         if isinstance(values[key], bool) or not isinstance(values[key], (int, float)):
             raise ValueError(f"{path}: {key} must be a number, found {values[key]!r}")
-    return checked_intrinsics(values, str(path))
+    shutter = None if data.get("shutter") is None else checked_shutter(data["shutter"], str(path))
+    return checked_intrinsics(values, str(path)), shutter
 
 
-def read_intrinsics_txt(path: Path, depth_scale: float) -> tuple[Intrinsics, np.ndarray | None]:
-    """intrinsics.txt: lines `fx 517.3`, `cx ...`, optional `depth_scale`, `width`, `height` and
-    `dist k1 k2 p1 p2 k3`; '#' comments. Size defaults to 640x480, depth_scale to `depth_scale`."""
+def read_intrinsics_txt(path: Path, depth_scale: float) -> tuple[Intrinsics, np.ndarray | None, float | None]:
+    """(intrinsics, distortion, shutter) of intrinsics.txt: lines `fx 517.3`, `cx ...`, optional `depth_scale`,
+    `width`, `height`, `dist k1 k2 p1 p2 k3` and `shutter SECONDS`; '#' comments. Size defaults to 640x480,
+    depth_scale to `depth_scale`."""
     values: dict = {"width": VGA[0], "height": VGA[1], "depth_scale": depth_scale}
-    distortion = None
+    distortion = shutter = None
     for lineno, fields in data_lines(path):
         key = fields[0]
         if key not in TXT_KEYS:
@@ -66,6 +77,8 @@ def read_intrinsics_txt(path: Path, depth_scale: float) -> tuple[Intrinsics, np.
         numbers = parse_floats(fields[1:], path, lineno, TXT_KEYS[key])
         if key == "dist":
             distortion = np.array(numbers)
+        elif key == "shutter":
+            shutter = checked_shutter(numbers[0], f"{path}:{lineno}")
         else:
             values[key] = numbers[0]
     missing = [k for k in ("fx", "fy", "cx", "cy") if k not in values]
@@ -73,15 +86,17 @@ def read_intrinsics_txt(path: Path, depth_scale: float) -> tuple[Intrinsics, np.
         raise ValueError(f"{path}: missing {', '.join(missing)}")
     if distortion is not None and not np.all(np.isfinite(distortion)):
         raise ValueError(f"{path}: distortion coefficients must be finite")
-    return checked_intrinsics(values, str(path)), distortion
+    return checked_intrinsics(values, str(path)), distortion, shutter
 
 
 def read_calibration(folder: Path, depth_scale: float) -> Calibration | None:
     """The folder's intrinsics.json, else its intrinsics.txt, else None (the format's defaults apply)."""
     if (folder / "intrinsics.json").is_file():
         path = folder / "intrinsics.json"
-        return Calibration(read_intrinsics_json(path, depth_scale), None, path.name)
+        intrinsics, shutter = read_intrinsics_json(path, depth_scale)
+        return Calibration(intrinsics, None, path.name, shutter)
     if (folder / "intrinsics.txt").is_file():
         path = folder / "intrinsics.txt"
-        return Calibration(*read_intrinsics_txt(path, depth_scale), path.name)
+        intrinsics, distortion, shutter = read_intrinsics_txt(path, depth_scale)
+        return Calibration(intrinsics, distortion, path.name, shutter)
     return None

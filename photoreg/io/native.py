@@ -29,10 +29,12 @@ class NativeWriter:
     """Writes frames as they come (rgb/, depth/, optional depth_clean/); `finish()` writes rgb.txt,
     depth.txt, groundtruth.txt and intrinsics.json."""
 
-    def __init__(self, root: str | os.PathLike, intrinsics: Intrinsics, source: str = "photoreg"):
+    def __init__(self, root: str | os.PathLike, intrinsics: Intrinsics, source: str = "photoreg",
+                 shutter: float | None = None):
         self.root = Path(root)
         self.K = intrinsics
         self.source = source
+        self.shutter = shutter   # seconds the shutter was open for each frame (intrinsics.json "shutter")
         self._frames: list[tuple[float, str, np.ndarray | None]] = []
 
     def write_frame(self, index: int, timestamp: float, rgb8: np.ndarray, depth: np.ndarray,
@@ -67,4 +69,5 @@ class NativeWriter:
             lines = [f"# ground-truth trajectory written by {self.source}", "# timestamp tx ty tz qx qy qz qw"]
             lines += [format_tum_line(t, p) for t, _, p in self._frames]
             write_text(self.root / "groundtruth.txt", "\n".join(lines) + "\n")
-        write_json(self.root / "intrinsics.json", self.K.to_json())
+        write_json(self.root / "intrinsics.json",
+                   {**self.K.to_json(), **({} if self.shutter is None else {"shutter": self.shutter})})

@@ -41,6 +41,7 @@ class Recording:
     undistort: bool = False               # remove `distortion` from every frame read
     invalid_depth: int | None = None      # raw depth value meaning "no measurement" besides 0 (7-Scenes: 65535)
     notes: list[str] = field(default_factory=list)  # where calibration/poses came from, dropped frames
+    shutter: float | None = None          # seconds the shutter is open for each frame, when the calibration says
 
     def __post_init__(self) -> None:
         n = len(self.color_files)
@@ -83,7 +84,8 @@ class Recording:
         pose = None if self.poses is None or self.poses[i] is None else self.poses[i].copy()
         return Frame(index=i, timestamp=float(self.timestamps[i]), color=color, depth=self._metres(raw),
                      intrinsics=self.intrinsics, pose=pose, source=str(cpath),
-                     depth_native=None if native is raw or self.undistort else self._metres(native))
+                     depth_native=None if native is raw or self.undistort else self._metres(native),
+                     shutter=self.shutter)
 
     def _metres(self, raw: np.ndarray) -> np.ndarray:
         """A depth file's values in float32 metres, 0 where they mean no measurement."""
@@ -243,6 +245,8 @@ def info_command(args: argparse.Namespace) -> int:
     if rec.distortion is not None:
         print(f"distortion:  k1 k2 p1 p2 k3 = {' '.join(f'{x:g}' for x in rec.distortion)} (not removed)")
     print(f"depth scale: {k.depth_scale:g} units per metre")
+    if rec.shutter is not None:
+        print(f"shutter:     {rec.shutter * 1000:g} ms (the objects blurred by the camera's motion over it)")
     with_pose = 0 if rec.poses is None else sum(p is not None for p in rec.poses)
     print(f"poses:       {'yes' if rec.has_poses else 'no'} ({with_pose}/{n} frames)")
     if n:

@@ -77,4 +77,5 @@ def open_redwood(path: Path, undistort: bool) -> Recording:
         notes.append(f"poses from {logs[0].name}")
     return Recording(path=path, format="redwood", intrinsics=calib.intrinsics,
                      timestamps=np.arange(len(colors)) / FPS, color_files=colors, depth_files=depths,
-                     poses=poses, distortion=calib.distortion, undistort=undistort, notes=notes)
+                     poses=poses, distortion=calib.distortion, undistort=undistort, notes=notes,
+                     shutter=calib.shutter)

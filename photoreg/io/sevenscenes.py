@@ -44,4 +44,4 @@ def open_7scenes(path: Path, undistort: bool) -> Recording:
     return Recording(path=path, format="7scenes", intrinsics=calib.intrinsics,
                      timestamps=np.arange(len(colors)) / FPS, color_files=colors, depth_files=depths,
                      poses=poses, distortion=calib.distortion, undistort=undistort,
-                     invalid_depth=INVALID_DEPTH, notes=notes)
+                     invalid_depth=INVALID_DEPTH, notes=notes, shutter=calib.shutter)

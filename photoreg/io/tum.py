@@ -111,4 +111,4 @@ def open_tum(path: Path, native: bool, undistort: bool) -> Recording:
         notes.append("poses from groundtruth.txt, interpolated to the colour frame times")
     return Recording(path=path, format="native" if native else "tum", intrinsics=calib.intrinsics,
                      timestamps=times, color_files=colors, depth_files=depths, poses=poses,
-                     distortion=calib.distortion, undistort=undistort, notes=notes)
+                     distortion=calib.distortion, undistort=undistort, notes=notes, shutter=calib.shutter)

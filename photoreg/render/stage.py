@@ -6,7 +6,7 @@ import time
 
 import numpy as np
 
-from photoreg.config import Session
+from photoreg.config import SHUTTER_CAMERA, Session
 from photoreg.kernels.grid import DenseGrid
 from photoreg.kernels.raycast import SurfaceMaps, raycast_surface
 from photoreg.kernels.transfer import make_direction_set
@@ -72,7 +72,8 @@ class RenderStage:
         maps are at another; and the G-buffer), 'render shadows' (the renderer) and 'render composite' (host time;
         each part ends on its own read-back, so a device's work lands in it). `timestamp` (seconds): the frame's
         time, which with the previous frame's gives the camera's motion the insertion is blurred by over the shutter
-        time, `shutter` seconds (Frame.shutter) or else render.shutter (render.motion_blur; `region` then grows)."""
+        time: render.shutter where it is a number, else `shutter` seconds (Frame.shutter; None: sharp)
+        (render.motion_blur; `region` then grows)."""
         t0 = time.perf_counter()
         rc, lc = self.session.reconstruction, self.session.lighting
         x0, y0, x1, y1 = self.window(pose)
@@ -95,8 +96,9 @@ class RenderStage:
         t1 = time.perf_counter()
         self.last_input, self.last = inp, self.renderer(inp)
         t2 = time.perf_counter()
-        shutter = self.session.render.shutter if shutter is None else shutter
-        m = None if timestamp is None else motion(pose, timestamp, self._previous, shutter)
+        if self.session.render.shutter != SHUTTER_CAMERA:   # the session's overrides the frame's own
+            shutter = self.session.render.shutter
+        m = None if timestamp is None or shutter is None else motion(pose, timestamp, self._previous, shutter)
         if timestamp is not None:
             self._previous = (timestamp, np.array(pose, dtype=np.float64))
         if m is None:

@@ -217,7 +217,7 @@ def generate(cfg: SynthConfig, log: Callable[[str], None] | None = print) -> Pat
     inserts = insert_indices(cfg.insert_frames, cfg.frames)
     base = MitsubaScene(layout.objects, env_image, rotation, K, cfg.max_depth)
     with_object = _insert_scene(cfg, layout, env_image, rotation, K) if inserts else None
-    writer = NativeWriter(out, K, source=f"photoreg synth {GENERATOR_VERSION}")
+    writer = NativeWriter(out, K, source=f"photoreg synth {GENERATOR_VERSION}", shutter=cfg.shutter or None)
     exposure = None
     per_frame = []
     for i, pose in enumerate(poses):
