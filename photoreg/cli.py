@@ -47,7 +47,8 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--gbuffer", choices=GBUFFER_BACKENDS, help="the objects' G-buffer rasterised by pyrender or "
                                                                "ray-traced by Warp (render.gbuffer, default pyrender)")
     p.add_argument("--shutter", type=float, help="seconds the camera's shutter is open: the objects blurred by its "
-                                                 "motion as the frame is (render.shutter, default 0: sharp)")
+                                                 "motion as the frame is; 0: sharp (render.shutter; default: the "
+                                                 "recording's calibration's, else sharp)")
     p.add_argument("--video", action="store_true", help="also composite.mp4: the composites as a video "
                                                           "(sessions with [[objects]])")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -77,8 +78,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--yaw", type=float, default=0.0, help="environment yaw about world +z, degrees")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--camera", default="orbit", choices=["orbit", "handheld", "static", "pan"],
-                   help="camera path: orbit about the scene (default), orbit with hand jitter, static, or pan (turning "
-                        "left and right on the spot)")
+                   help="camera path: orbit about the scene (default), orbit with hand jitter, static, or pan (the "
+                        "orbit, turning left and right as it goes)")
     p.add_argument("--direct-only", action="store_true", help="direct illumination only (no interreflection)")
     p.add_argument("--insert-frames", default="auto",
                    help="frames re-rendered with a virtual object: comma-separated list, 'auto' or 'none'")

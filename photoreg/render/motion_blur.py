@@ -3,10 +3,10 @@
 A camera that moves while its shutter is open blurs the frame along each pixel's image motion, and an object
 composited sharp into such a frame stands out from it. What the renderer's layers change (the objects and the shadows
 they cast) is blurred along the same motion: at pixel x the layers are the mean of theirs at x + u b(x), u spread
-evenly over [-1/2, 1/2], where b(x) is how far the surface seen at x moves in the image while
-the shutter is open: its displacement between the previous frame's pose and this one's, times shutter / (t - t_prev)
-(a shutter centred on the frame's time, the camera's velocity taken as constant across it). The surface is the
-virtual one where the G-buffer covers a pixel, else the real one (sensor depth, its holes at the box's median depth).
+evenly over [-1/2, 1/2], where b(x) is how far the surface seen at x moves in the image while the shutter is open:
+its displacement between the previous frame's pose and this one's, times shutter / (t - t_prev) (a shutter centred on
+the frame's time, the camera's velocity taken as constant across it). The surface is the virtual one where the
+G-buffer covers a pixel, else the real one (sensor depth, its holes at the box's median depth).
 """
 from __future__ import annotations
 
@@ -20,7 +20,7 @@ from photoreg.render.composite import Layers, composite, stride_box
 from photoreg.types import Intrinsics
 
 MAX_SAMPLES = 32   # instants along a pixel's motion averaged at most (one per pixel of the longest blur)
-MIN_BLUR_PX = 0.5  # a longest blur below this leaves the composite as it is
+MIN_BLUR_PX = 0.5  # a longest blur below this gives the sharp composite
 MAX_GAP_S = 0.25   # poses further apart than this do not give the camera's velocity over a shutter time
 Box = tuple[int, int, int, int]   # pixels (x0, y0, x1, y1), x1 and y1 exclusive
 

@@ -36,7 +36,8 @@ class RenderStage:
         self._dirs: dict[int, tuple[np.ndarray, np.ndarray]] = {}
         self.last: Layers | None = None
         self.last_input: RenderInput | None = None
-        self.region: tuple[int, int, int, int] | None = None   # the latest composite's (composite.Layers.region)
+        # box outside which the latest composite is the camera frame: its Layers.region, grown by the motion blur
+        self.region: tuple[int, int, int, int] | None = None
         self._previous: tuple[float, np.ndarray] | None = None  # (timestamp, pose) of the latest frame rendered
 
     def directions(self, bands: int) -> tuple[np.ndarray, np.ndarray]:
