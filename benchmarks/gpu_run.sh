@@ -57,6 +57,9 @@
 #              wheels carried in .carry/pytest), then benchmarks/gbuffer_check.py on TUM with the bunny and the demo's
 #              session, 8 frames each on CUDA (OUTDIR/gbuffer_check.jsonl, the frames differing most in
 #              OUTDIR/gbuffer_check_*.npz)
+#   blur       the motion blur's unit tests (tests/test_motion_blur.py, the ones without Mitsuba), then `photoreg bench
+#              speed` of TUM with the bunny (raycast G-buffer, stride 4 / 64 / 3, held and --async) with --shutter 0
+#              and 0.016, alternating, BLUR_ROUNDS (default "1 2") rounds (OUTDIR/blur.json)
 #   meshgt     MESH_RECS (recordings made with `photoreg synth ... --insert-mesh FILE`, carried over): `photoreg run
 #              --device cuda` of each one's session with the G-buffer drawn (pyrender) and ray-traced, smooth as written
 #              and flat (objects.smooth = false), each scored with `photoreg score --composite` (OUTDIR/meshgt_*.json)
@@ -293,6 +296,23 @@ for step in "$@"; do
         python3 benchmarks/gbuffer_check.py $session 0:8 cuda "$out/gbuffer_check_${session//\//_}.npz" \
           2>/dev/null | tee -a "$out/gbuffer_check.jsonl"
       done ;;
+    blur)
+      [ -d .carry/pytest ] && python3 -m pip install -q --no-index --no-deps --target /tmp/site .carry/pytest/*.whl
+      python3 -m pytest -q -p no:cacheprovider tests/test_motion_blur.py -k "spreads or show_through or needs" 2>&1 \
+        | tail -3 | tee "$out/blur_pytest.txt" || true
+      rm -rf /tmp/blur; mkdir -p /tmp/blur
+      for round in ${BLUR_ROUNDS:-1 2}; do
+        shutters="0 0.016"; [ $((round % 2)) = 0 ] && shutters="0.016 0"   # each first in turn
+        for mode in "held --every 1000" "async --async"; do
+          read -r tag flags <<< "$mode"
+          for sh in $shutters; do
+            python3 -m photoreg bench speed sessions/tum_fr1_rpy.toml --device cuda --frames 0:30 --warmup 3 \
+              --stride 4 --rays 64 --bands 3 --gbuffer raycast --shutter $sh $flags \
+              --json "/tmp/blur/${tag}_shutter${sh}_$round.json" 2>/dev/null
+          done
+        done
+      done
+      merge /tmp/blur "$out/blur.json" ;;
     meshgt)
       for r in $MESH_RECS; do
         name=$(basename "$r")

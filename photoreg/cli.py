@@ -162,6 +162,8 @@ def build_parser() -> argparse.ArgumentParser:
                                                      "(render.stride; default the session's)")
     b.add_argument("--gbuffer", choices=GBUFFER_BACKENDS, help="sessions with objects: their G-buffer's backend "
                                                                "(render.gbuffer; default the session's)")
+    b.add_argument("--shutter", type=float, help="sessions with objects: seconds the shutter is open, the objects "
+                                                 "motion-blurred (render.shutter; default the session's)")
     b.add_argument("--voxel-size", type=float)
     b.add_argument("--ray-length", type=float)
     b.add_argument("--every", type=int, default=1, help="estimate the lighting on every n-th frame (lighting.every)")

@@ -81,6 +81,7 @@ def bench_recording(session: Session, warmup: int = 2) -> dict:
         "objects": len(session.objects), "shadows": session.render.shadows if session.objects else None,
         "render_stride": session.render.stride if session.objects else None,
         "gbuffer": session.render.gbuffer if session.objects else None,
+        "shutter": session.render.shutter if session.objects else None,
         "ms_mean": {s: round(float(np.mean([t.get(s, 0.0) for t in timings])), 3) for s in stages},
         "ms_p95": {s: round(float(np.percentile([t.get(s, 0.0) for t in timings], 95)), 3) for s in stages},
         "ms_median": {s: round(float(np.median([t.get(s, 0.0) for t in timings])), 3) for s in stages},
@@ -107,6 +108,8 @@ def speed_command(args) -> int:
         s.render.stride = args.render_stride
     if args.gbuffer:
         s.render.gbuffer = args.gbuffer
+    if args.shutter is not None:
+        s.render.shutter = args.shutter
     if args.voxel_size:
         s.reconstruction.voxel_size = args.voxel_size
     if args.ray_length:
