@@ -12,6 +12,7 @@ import pytest
 
 from photoreg import cli
 from photoreg.config import Session, load_session, validate
+from photoreg.device import init_warp
 from photoreg.io.images import read_exr, srgb_to_linear
 from photoreg.io.recording import iter_frames, open_recording
 from photoreg.pipeline import Pipeline
@@ -20,6 +21,8 @@ from photoreg.render.motion_blur import MAX_GAP_S, Motion, blurred_composite, mo
 from photoreg.types import Intrinsics
 
 K = Intrinsics(64, 48, 60.0, 60.0, 31.5, 23.5)
+DEVICES = ["cpu", pytest.param("cuda", marks=pytest.mark.skipif(   # the blur kernel's devices (kernels.blur)
+    not init_warp().is_cuda_available(), reason="no CUDA device here (runs on the GPU machine: gpu_run.sh blur)"))]
 
 
 def _moved(dx: float) -> np.ndarray:
@@ -36,7 +39,8 @@ def _line_layers() -> Layers:
                   region=(30, 10, 31, 30))
 
 
-def test_an_insertion_spreads_along_the_image_motion():
+@pytest.mark.parametrize("device", DEVICES)
+def test_an_insertion_spreads_along_the_image_motion(device):
     """The camera 10 cm to the left at the previous frame, a wall 2 m ahead: every pixel moved 3 px (fx 0.1 / 2);
     with the shutter open for twice the frame interval the object (a vertical line of 1 on a black frame) spreads
     over 6 px along x and not along y, each row keeping its sum, and the region grows to hold it; a blur under half a
@@ -46,7 +50,7 @@ def test_an_insertion_spreads_along_the_image_motion():
     depth = np.full((48, 64), 2.0, np.float32)
     depth[0, 0] = np.nan                                      # unknown depth is filled, not propagated
     layers = _line_layers()
-    blurred, region = blurred_composite(camera, layers, depth, K, Motion(np.eye(4), _moved(-0.1), 2.0))
+    blurred, region = blurred_composite(camera, layers, depth, K, Motion(np.eye(4), _moved(-0.1), 2.0), device)
     assert np.isfinite(blurred).all() and blurred.min() >= 0
     rows = blurred[12:28, :, 0]
     np.testing.assert_allclose(rows.sum(axis=1), 1.0, atol=1e-5)
@@ -57,15 +61,16 @@ def test_an_insertion_spreads_along_the_image_motion():
     x0, y0, x1, y1 = region
     assert x0 <= 27 and x1 >= 34 and y0 <= 10 and y1 >= 30
     anywhere, box = blurred_composite(camera, dataclasses.replace(layers, region=None), depth, K,
-                                      Motion(np.eye(4), _moved(-0.1), 2.0))
-    np.testing.assert_array_equal(anywhere, blurred)
+                                      Motion(np.eye(4), _moved(-0.1), 2.0), device)
+    np.testing.assert_allclose(anywhere, blurred, atol=1e-6)
     assert box[0] <= 27 and box[2] >= 34
-    still, box = blurred_composite(camera, layers, depth, K, Motion(np.eye(4), _moved(-0.1), 0.1))
+    still, box = blurred_composite(camera, layers, depth, K, Motion(np.eye(4), _moved(-0.1), 0.1), device)
     np.testing.assert_array_equal(still, composite(camera, layers))
     assert box == (30, 10, 31, 30)
 
 
-def test_the_frame_does_not_show_through_a_blurred_object():
+@pytest.mark.parametrize("device", DEVICES)
+def test_the_frame_does_not_show_through_a_blurred_object(device):
     """An opaque object (colour 0.5) 20 px wide over a striped frame, blurred by 6 px: well inside it the composite is
     the object's colour alone, the stripes behind it nowhere (blurring the composite less the frame let the frame's
     stripes less their blur through), and at its edges the frame shows through by the object's blurred coverage."""
@@ -76,7 +81,7 @@ def test_the_frame_does_not_show_through_a_blurred_object():
     layers = Layers(np.full((48, 64, 3), 0.5, np.float32) * alpha[..., None], alpha, np.ones((48, 64, 3), np.float32),
                     region=(20, 10, 40, 30))
     out, _ = blurred_composite(camera, layers, np.full((48, 64), 2.0, np.float32), K,
-                               Motion(np.eye(4), _moved(-0.1), 2.0))
+                               Motion(np.eye(4), _moved(-0.1), 2.0), device)
     np.testing.assert_allclose(out[12:28, 24:36], 0.5, atol=1e-6)
     edge = out[12:28, 18:22].mean()
     assert 0.3 < edge < 0.7                                    # half object, half the stripes' mean (0.5)

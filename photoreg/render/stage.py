@@ -25,7 +25,7 @@ class RenderStage:
     its RenderInput (to run other renderers on the same frame: the renderer contract test, benchmarks)."""
 
     def __init__(self, session: Session, intrinsics: Intrinsics, device: str):
-        self.session, self.intrinsics = session, intrinsics
+        self.session, self.intrinsics, self.device = session, intrinsics, device
         self.stride = session.render.stride
         self.renderer = get_renderer(session.render.shadows)
         self.scene = load_scene(session.objects)
@@ -105,10 +105,10 @@ class RenderStage:
         if m is None:
             out, self.region = composite(camera, self.last), self.last.region
         else:   # the surface each pixel shows: the objects' where they cover it, else the sensor's
-            depth = np.nan_to_num(sensor_depth, nan=0.0, posinf=0.0, neginf=0.0)
+            depth = np.array(sensor_depth, dtype=np.float32)
             box, cover = gb.box, gb.coverage[gb.box] > 0.5
             depth[box][cover] = gb.window_depth[cover]
-            out, self.region = blurred_composite(camera, self.last, depth, self.intrinsics, m)
+            out, self.region = blurred_composite(camera, self.last, depth, self.intrinsics, m, self.device)
         if timings is not None:
             for part, ms in (("gbuffer", t1 - t0), ("shadows", t2 - t1), ("composite", time.perf_counter() - t2)):
                 timings["render " + part] = ms * 1000.0
