@@ -1,8 +1,11 @@
-"""Motion blur of a composite's two layers along each pixel's image motion (photoreg.render.motion_blur).
+"""Motion blur of a composite's layers along each pixel's image motion (photoreg.render.motion_blur).
 
-Each pixel averages `n` bilinear samples of the frame's factor and of the objects' term spread evenly along its motion
-vector, then blends them with its camera colour: out = camera * mean(frame) + mean(objects), clamped at 0. A sample
-off the box takes the layers' identity (factor 1, term 0), as cv2.remap's constant border would.
+A pixel's motion b over the shutter comes from the depth of the surface it shows: back-projected, moved into the
+previous frame's camera (rotation and translation from this camera to that one), projected, and the displacement
+scaled by the shutter's share of the frame interval. The blur averages, at max(1, ceil |b|) + 1 instants spread evenly
+along b (at most `max_samples`), bilinear samples of the frame's factor (1 - alpha) ratio and of the objects' term
+alpha colour, and blends them with the pixel's camera colour: out = camera * mean(factor) + mean(term), clamped at 0.
+A sample off the box takes the layers' identity (factor 1, term 0), as outside the renderer's region.
 """
 from __future__ import annotations
 
@@ -10,57 +13,137 @@ import numpy as np
 
 from photoreg.device import init_warp
 from photoreg.kernels.launch import launch_rows
+from photoreg.types import Intrinsics
 
 wp = init_warp()
 
 
 @wp.func
-def _tap(a: wp.array2d(dtype=wp.vec3), r: int, c: int, border: wp.vec3) -> wp.vec3:
-    if r < 0 or c < 0 or r >= a.shape[0] or c >= a.shape[1]:
-        return border
-    return a[r, c]
-
-
-@wp.func
-def _bilinear(a: wp.array2d(dtype=wp.vec3), x: float, y: float, border: wp.vec3) -> wp.vec3:
-    x0 = wp.floor(x)
-    y0 = wp.floor(y)
-    fx = x - x0
-    fy = y - y0
-    c = int(x0)
-    r = int(y0)
-    top = _tap(a, r, c, border) * (1.0 - fx) + _tap(a, r, c + 1, border) * fx
-    bottom = _tap(a, r + 1, c, border) * (1.0 - fx) + _tap(a, r + 1, c + 1, border) * fx
-    return top * (1.0 - fy) + bottom * fy
+def _motion(depth: wp.array2d(dtype=wp.float32), r: int, c: int, fill: float, x0: int, y0: int, k: wp.vec4,
+            rot: wp.mat33, trans: wp.vec3, share: float) -> wp.vec2:
+    """Image motion (pixels) over the shutter of pixel (r, c) of the box whose top-left pixel is (x0, y0); k = fx, fy,
+    cx, cy; an unknown depth (0 or not finite) reads as `fill`; 0 where the surface lies behind the previous camera."""
+    z = depth[r, c]
+    if not (z > 0.0 and z < 1.0e30):
+        z = fill
+    px = float(c + x0)
+    py = float(r + y0)
+    p = rot * wp.vec3((px - k[2]) / k[0] * z, (py - k[3]) / k[1] * z, z) + trans
+    if p[2] <= 1.0e-6:
+        return wp.vec2(0.0, 0.0)
+    return share * wp.vec2(px - (k[0] * p[0] / p[2] + k[2]), py - (k[1] * p[1] / p[2] + k[3]))
 
 
 @wp.kernel
-def _blur(camera: wp.array2d(dtype=wp.vec3), frame: wp.array2d(dtype=wp.vec3), objects: wp.array2d(dtype=wp.vec3),
-          motion: wp.array2d(dtype=wp.vec2), n: int, row0: int, out: wp.array2d(dtype=wp.vec3)):
+def _lengths(depth: wp.array2d(dtype=wp.float32), fill: float, x0: int, y0: int, k: wp.vec4, rot: wp.mat33,
+             trans: wp.vec3, share: float, row0: int, out: wp.array2d(dtype=wp.float32)):
     i, j = wp.tid()
     r = i + row0
-    b = motion[r, j]
+    out[r, j] = wp.length(_motion(depth, r, j, fill, x0, y0, k, rot, trans, share))
+
+
+@wp.func
+def _tap_factor(alpha: wp.array2d(dtype=wp.float32), ratio: wp.array2d(dtype=wp.vec3), r: int, c: int) -> wp.vec3:
+    if r < 0 or c < 0 or r >= alpha.shape[0] or c >= alpha.shape[1]:
+        return wp.vec3(1.0)
+    return (1.0 - alpha[r, c]) * ratio[r, c]
+
+
+@wp.func
+def _tap_term(alpha: wp.array2d(dtype=wp.float32), colour: wp.array2d(dtype=wp.vec3), r: int, c: int) -> wp.vec3:
+    if r < 0 or c < 0 or r >= alpha.shape[0] or c >= alpha.shape[1]:
+        return wp.vec3(0.0)
+    return alpha[r, c] * colour[r, c]
+
+
+@wp.func
+def _factor(alpha: wp.array2d(dtype=wp.float32), ratio: wp.array2d(dtype=wp.vec3), x: float, y: float) -> wp.vec3:
+    """The frame's factor (1 - alpha) ratio, bilinear at pixel position (x, y) of the box."""
+    xf = wp.floor(x)
+    yf = wp.floor(y)
+    wx = x - xf
+    wy = y - yf
+    c = int(xf)
+    r = int(yf)
+    return ((_tap_factor(alpha, ratio, r, c) * (1.0 - wx) + _tap_factor(alpha, ratio, r, c + 1) * wx) * (1.0 - wy)
+            + (_tap_factor(alpha, ratio, r + 1, c) * (1.0 - wx) + _tap_factor(alpha, ratio, r + 1, c + 1) * wx) * wy)
+
+
+@wp.func
+def _term(alpha: wp.array2d(dtype=wp.float32), colour: wp.array2d(dtype=wp.vec3), x: float, y: float) -> wp.vec3:
+    """The objects' term alpha colour, bilinear at pixel position (x, y) of the box."""
+    xf = wp.floor(x)
+    yf = wp.floor(y)
+    wx = x - xf
+    wy = y - yf
+    c = int(xf)
+    r = int(yf)
+    return ((_tap_term(alpha, colour, r, c) * (1.0 - wx) + _tap_term(alpha, colour, r, c + 1) * wx) * (1.0 - wy)
+            + (_tap_term(alpha, colour, r + 1, c) * (1.0 - wx) + _tap_term(alpha, colour, r + 1, c + 1) * wx) * wy)
+
+
+@wp.kernel
+def _blur(camera: wp.array2d(dtype=wp.vec3), alpha: wp.array2d(dtype=wp.float32), ratio: wp.array2d(dtype=wp.vec3),
+          colour: wp.array2d(dtype=wp.vec3), depth: wp.array2d(dtype=wp.float32), fill: float, x0: int, y0: int,
+          k: wp.vec4, rot: wp.mat33, trans: wp.vec3, share: float, max_samples: int, row0: int,
+          out: wp.array2d(dtype=wp.vec3)):
+    i, j = wp.tid()
+    r = i + row0
+    b = _motion(depth, r, j, fill, x0, y0, k, rot, trans, share)
+    n = wp.min(max_samples, int(wp.ceil(wp.length(b))) + 1)
     f = wp.vec3(0.0)
     o = wp.vec3(0.0)
-    for k in range(n):
-        u = (float(k) + 0.5) / float(n) - 0.5
-        x = float(j) + u * b[0]
-        y = float(r) + u * b[1]
-        f += _bilinear(frame, x, y, wp.vec3(1.0))
-        o += _bilinear(objects, x, y, wp.vec3(0.0))
+    for s in range(n):
+        u = (float(s) + 0.5) / float(n) - 0.5
+        f += _factor(alpha, ratio, float(j) + u * b[0], float(r) + u * b[1])
+        o += _term(alpha, colour, float(j) + u * b[0], float(r) + u * b[1])
     v = (wp.cw_mul(camera[r, j], f) + o) / float(n)
     out[r, j] = wp.vec3(wp.max(v[0], 0.0), wp.max(v[1], 0.0), wp.max(v[2], 0.0))
 
 
-def blur_layers(camera: np.ndarray, frame: np.ndarray, objects: np.ndarray, motion: np.ndarray, n: int,
-                device: str) -> np.ndarray:
-    """(h, w, 3) float32 composite of a box: `camera`, the frame's factor `frame` and the objects' term `objects`
-    (each (h, w, 3) linear), the layers averaged over `n` samples along `motion` (h, w, 2: x, y pixels) on `device`
-    (the CPU's launch split over threads, kernels.launch)."""
-    h, w = camera.shape[:2]
-    images = [wp.array(np.ascontiguousarray(a, dtype=np.float32), dtype=wp.vec3, device=device)
-              for a in (camera, frame, objects)]
-    vectors = wp.array(np.ascontiguousarray(motion, dtype=np.float32), dtype=wp.vec2, device=device)
+def _camera_motion(intr: Intrinsics, pose: np.ndarray, previous: np.ndarray, share: float) -> list:
+    """The kernels' camera inputs: (fx, fy, cx, cy), the rotation and translation from this camera to the previous
+    one (poses camera-to-world), the shutter's share of the frame interval."""
+    rot = previous[:3, :3].T @ pose[:3, :3]
+    trans = previous[:3, :3].T @ (pose[:3, 3] - previous[:3, 3])
+    return [wp.vec4(intr.fx, intr.fy, intr.cx, intr.cy), wp.mat33(*rot.astype(np.float32).ravel()),
+            wp.vec3(*trans.astype(np.float32)), float(share)]
+
+
+def _depth(depth: np.ndarray, device: str) -> tuple[wp.array, float]:
+    """The box's depth on `device` and the value its unknown pixels (0 or not finite) take: the known ones' median
+    (1 m where none is)."""
+    known = np.isfinite(depth) & (depth > 0)
+    return (wp.array(np.ascontiguousarray(depth, dtype=np.float32), dtype=wp.float32, device=device),
+            float(np.median(depth[known])) if known.any() else 1.0)
+
+
+def motion_lengths(depth: np.ndarray, origin: tuple[int, int], intr: Intrinsics, pose: np.ndarray,
+                   previous: np.ndarray, share: float, device: str) -> np.ndarray:
+    """(h, w) length in pixels of each pixel's motion over the shutter, for the box of depth `depth` (metres) whose
+    top-left pixel is `origin` (x, y), the camera at `pose` now and at `previous` a frame before."""
+    h, w = depth.shape
+    d, fill = _depth(depth, device)
+    out = wp.empty((h, w), dtype=wp.float32, device=device)
+    launch_rows(_lengths, (h, w), inputs=[d, fill, int(origin[0]), int(origin[1]),
+                                          *_camera_motion(intr, pose, previous, share)], outputs=[out], device=device)
+    return out.numpy()
+
+
+def blur_layers(camera: np.ndarray, alpha: np.ndarray, ratio: np.ndarray, colour: np.ndarray, depth: np.ndarray,
+                origin: tuple[int, int], intr: Intrinsics, pose: np.ndarray, previous: np.ndarray, share: float,
+                max_samples: int, device: str) -> np.ndarray:
+    """(h, w, 3) float32 composite of a box (top-left pixel `origin`, x and y): `camera` (h, w, 3 linear) under the
+    layers `alpha` (h, w), `ratio` and `colour` (h, w, 3), blurred along each pixel's motion (module docstring) on
+    `device` (the CPU's launch split over threads, kernels.launch)."""
+    h, w = alpha.shape
+    vec3 = [wp.array(np.ascontiguousarray(a, dtype=np.float32), dtype=wp.vec3, device=device)
+            for a in (camera, ratio, colour)]
+    d, fill = _depth(depth, device)
     out = wp.empty((h, w), dtype=wp.vec3, device=device)
-    launch_rows(_blur, (h, w), inputs=[*images, vectors, int(n)], outputs=[out], device=device)
+    launch_rows(_blur, (h, w), inputs=[vec3[0], wp.array(np.ascontiguousarray(alpha, dtype=np.float32),
+                                                         dtype=wp.float32, device=device), vec3[1], vec3[2], d, fill,
+                                       int(origin[0]), int(origin[1]), *_camera_motion(intr, pose, previous, share),
+                                       int(max_samples)],
+                outputs=[out], device=device)
     return out.numpy()

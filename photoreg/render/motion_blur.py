@@ -6,7 +6,8 @@ they cast) is blurred along the same motion: at pixel x the layers are the mean 
 evenly over [-1/2, 1/2], where b(x) is how far the surface seen at x moves in the image while the shutter is open:
 its displacement between the previous frame's pose and this one's, times shutter / (t - t_prev) (a shutter centred on
 the frame's time, the camera's velocity taken as constant across it). The surface is the virtual one where the
-G-buffer covers a pixel, else the real one (sensor depth, its holes at the box's median depth).
+G-buffer covers a pixel, else the real one (sensor depth, its holes at the box's median depth). The motion and the
+samples are computed on the pipeline's device (photoreg.kernels.blur).
 """
 from __future__ import annotations
 
@@ -15,11 +16,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from photoreg.kernels.blur import blur_layers
+from photoreg.kernels.blur import blur_layers, motion_lengths
 from photoreg.render.composite import Layers, composite, stride_box
 from photoreg.types import Intrinsics
 
-MAX_SAMPLES = 32   # instants along a pixel's motion averaged at most (one per pixel of the longest blur)
+MAX_SAMPLES = 32   # instants along a pixel's motion averaged at most (one per pixel of its blur, and one)
 MIN_BLUR_PX = 0.5  # a longest blur below this gives the sharp composite
 MAX_GAP_S = 0.25   # poses further apart than this do not give the camera's velocity over a shutter time
 Box = tuple[int, int, int, int]   # pixels (x0, y0, x1, y1), x1 and y1 exclusive
@@ -47,35 +48,6 @@ def motion(pose: np.ndarray, timestamp: float, previous: tuple[float, np.ndarray
     return Motion(np.asarray(pose, np.float64), np.asarray(previous[1], np.float64), shutter / dt)
 
 
-def blur_vectors(depth: np.ndarray, intr: Intrinsics, m: Motion, box: Box, step: int = 1) -> np.ndarray:
-    """(h, w, 2) float32 image motion b (pixels, x then y) during the shutter of the surfaces at camera depth `depth`
-    (metres, finite and > 0) at every `step`-th pixel of the pixel box (x0, y0, x1, y1); 0 where the surface lies
-    behind the previous camera."""
-    x0, y0, x1, y1 = box
-    ys, xs = np.mgrid[y0:y1:step, x0:x1:step].astype(np.float32)
-    z = depth.astype(np.float32)
-    cam = np.stack([(xs - np.float32(intr.cx)) / np.float32(intr.fx) * z,
-                    (ys - np.float32(intr.cy)) / np.float32(intr.fy) * z, z], axis=-1)
-    R, t = m.pose[:3, :3].astype(np.float32), m.pose[:3, 3].astype(np.float32)
-    Rp, tp = m.previous[:3, :3].astype(np.float32), m.previous[:3, 3].astype(np.float32)
-    before = (cam @ R.T + (t - tp)) @ Rp    # camera -> world -> previous camera
-    ahead = before[..., 2] > 1e-6
-    zb = np.where(ahead, before[..., 2], np.float32(1.0))
-    b = np.stack([xs - (np.float32(intr.fx) * before[..., 0] / zb + np.float32(intr.cx)),
-                  ys - (np.float32(intr.fy) * before[..., 1] / zb + np.float32(intr.cy))], axis=-1)
-    b *= np.float32(m.share)
-    b[~ahead] = 0.0
-    return b
-
-
-def _surface(depth: np.ndarray, box: Box, step: int = 1) -> np.ndarray | None:
-    """The depth of every `step`-th pixel of `box`, its unknown pixels (0 or non-finite) at the known ones' median;
-    None where none is known."""
-    d = depth[box[1]:box[3]:step, box[0]:box[2]:step]
-    known = np.isfinite(d) & (d > 0)
-    return np.where(known, d, np.median(d[known])).astype(np.float32) if known.any() else None
-
-
 def blurred_composite(camera: np.ndarray, layers: Layers, depth: np.ndarray, intr: Intrinsics, m: Motion,
                       device: str = "cpu") -> tuple[np.ndarray, Box | None]:
     """(composite, its region) of a renderer's `layers` over the camera frame with what they change blurred along the
@@ -88,23 +60,22 @@ def blurred_composite(camera: np.ndarray, layers: Layers, depth: np.ndarray, int
     H, W = camera.shape[:2]
     box = layers.region if layers.region is not None else stride_box(
         (layers.alpha > 0) | (layers.ratio != 1.0).any(axis=-1), 1, (H, W))
-    coarse = None if box is None or not (box[2] > box[0] and box[3] > box[1]) else _surface(depth, box, 4)
-    if coarse is None:
+    if box is None or not (box[2] > box[0] and box[3] > box[1]):
         return composite(camera, layers), layers.region
-    longest = float(np.linalg.norm(blur_vectors(coarse, intr, m, box, 4), axis=-1).max())   # how far to grow it
+    d = depth[box[1]:box[3], box[0]:box[2]]
+    if not (np.isfinite(d) & (d > 0)).any():
+        return composite(camera, layers), layers.region
+    longest = float(motion_lengths(d, box[:2], intr, m.pose, m.previous, m.share, device).max())
     if longest < MIN_BLUR_PX:
         return composite(camera, layers), layers.region
-    reach = int(math.ceil(longest / 2)) + 2
-    grown = (max(box[0] - reach, 0), max(box[1] - reach, 0), min(box[2] + reach, W), min(box[3] + reach, H))
-    x0, y0, x1, y1 = grown
-    b = blur_vectors(_surface(depth, grown), intr, m, grown)
-    n = min(MAX_SAMPLES, int(math.ceil(float(np.linalg.norm(b, axis=-1).max()))) + 1)
+    reach = int(math.ceil(longest / 2)) + 1
+    x0, y0, x1, y1 = grown = (max(box[0] - reach, 0), max(box[1] - reach, 0), min(box[2] + reach, W),
+                              min(box[3] + reach, H))
     rows, cols = slice(y0, y1), slice(x0, x1)
-    alpha = layers.alpha[rows, cols, None]
-    frame = ((1.0 - alpha) * layers.ratio[rows, cols]).astype(np.float32)   # 1 outside the layers' region
-    objects = (alpha * layers.colour[rows, cols]).astype(np.float32)        # 0 there
     out = np.array(camera, dtype=np.float32)
     if not np.isfinite(out).all():
         np.nan_to_num(out, copy=False, nan=0.0, posinf=0.0, neginf=0.0)
-    out[rows, cols] = blur_layers(out[rows, cols], frame, objects, b, n, device)
+    out[rows, cols] = blur_layers(out[rows, cols], layers.alpha[rows, cols], layers.ratio[rows, cols],
+                                  layers.colour[rows, cols], depth[rows, cols], (x0, y0), intr, m.pose, m.previous,
+                                  m.share, MAX_SAMPLES, device)
     return out, grown
