@@ -43,43 +43,32 @@ def _lengths(depth: wp.array2d(dtype=wp.float32), fill: float, x0: int, y0: int,
 
 
 @wp.func
-def _tap_factor(alpha: wp.array2d(dtype=wp.float32), ratio: wp.array2d(dtype=wp.vec3), r: int, c: int) -> wp.vec3:
+def _tap(alpha: wp.array2d(dtype=wp.float32), ratio: wp.array2d(dtype=wp.vec3), colour: wp.array2d(dtype=wp.vec3),
+         r: int, c: int):
+    """(the frame's factor (1 - alpha) ratio, the objects' term alpha colour) at pixel (r, c) of the box; off it the
+    identity (1, 0)."""
     if r < 0 or c < 0 or r >= alpha.shape[0] or c >= alpha.shape[1]:
-        return wp.vec3(1.0)
-    return (1.0 - alpha[r, c]) * ratio[r, c]
+        return wp.vec3(1.0), wp.vec3(0.0)
+    return (1.0 - alpha[r, c]) * ratio[r, c], alpha[r, c] * colour[r, c]
 
 
 @wp.func
-def _tap_term(alpha: wp.array2d(dtype=wp.float32), colour: wp.array2d(dtype=wp.vec3), r: int, c: int) -> wp.vec3:
-    if r < 0 or c < 0 or r >= alpha.shape[0] or c >= alpha.shape[1]:
-        return wp.vec3(0.0)
-    return alpha[r, c] * colour[r, c]
-
-
-@wp.func
-def _factor(alpha: wp.array2d(dtype=wp.float32), ratio: wp.array2d(dtype=wp.vec3), x: float, y: float) -> wp.vec3:
-    """The frame's factor (1 - alpha) ratio, bilinear at pixel position (x, y) of the box."""
+def _sample(alpha: wp.array2d(dtype=wp.float32), ratio: wp.array2d(dtype=wp.vec3), colour: wp.array2d(dtype=wp.vec3),
+            x: float, y: float):
+    """_tap's two layers, bilinear at pixel position (x, y) of the box."""
     xf = wp.floor(x)
     yf = wp.floor(y)
     wx = x - xf
     wy = y - yf
     c = int(xf)
     r = int(yf)
-    return ((_tap_factor(alpha, ratio, r, c) * (1.0 - wx) + _tap_factor(alpha, ratio, r, c + 1) * wx) * (1.0 - wy)
-            + (_tap_factor(alpha, ratio, r + 1, c) * (1.0 - wx) + _tap_factor(alpha, ratio, r + 1, c + 1) * wx) * wy)
-
-
-@wp.func
-def _term(alpha: wp.array2d(dtype=wp.float32), colour: wp.array2d(dtype=wp.vec3), x: float, y: float) -> wp.vec3:
-    """The objects' term alpha colour, bilinear at pixel position (x, y) of the box."""
-    xf = wp.floor(x)
-    yf = wp.floor(y)
-    wx = x - xf
-    wy = y - yf
-    c = int(xf)
-    r = int(yf)
-    return ((_tap_term(alpha, colour, r, c) * (1.0 - wx) + _tap_term(alpha, colour, r, c + 1) * wx) * (1.0 - wy)
-            + (_tap_term(alpha, colour, r + 1, c) * (1.0 - wx) + _tap_term(alpha, colour, r + 1, c + 1) * wx) * wy)
+    f00, o00 = _tap(alpha, ratio, colour, r, c)
+    f01, o01 = _tap(alpha, ratio, colour, r, c + 1)
+    f10, o10 = _tap(alpha, ratio, colour, r + 1, c)
+    f11, o11 = _tap(alpha, ratio, colour, r + 1, c + 1)
+    f = (f00 * (1.0 - wx) + f01 * wx) * (1.0 - wy) + (f10 * (1.0 - wx) + f11 * wx) * wy
+    o = (o00 * (1.0 - wx) + o01 * wx) * (1.0 - wy) + (o10 * (1.0 - wx) + o11 * wx) * wy
+    return f, o
 
 
 @wp.kernel
@@ -95,8 +84,9 @@ def _blur(camera: wp.array2d(dtype=wp.vec3), alpha: wp.array2d(dtype=wp.float32)
     o = wp.vec3(0.0)
     for s in range(n):
         u = (float(s) + 0.5) / float(n) - 0.5
-        f += _factor(alpha, ratio, float(j) + u * b[0], float(r) + u * b[1])
-        o += _term(alpha, colour, float(j) + u * b[0], float(r) + u * b[1])
+        frame_u, objects_u = _sample(alpha, ratio, colour, float(j) + u * b[0], float(r) + u * b[1])
+        f += frame_u
+        o += objects_u
     v = (wp.cw_mul(camera[r, j], f) + o) / float(n)
     out[r, j] = wp.vec3(wp.max(v[0], 0.0), wp.max(v[1], 0.0), wp.max(v[2], 0.0))
 
