@@ -2,8 +2,8 @@
 
 A pixel's motion b over the shutter comes from the depth of the surface it shows: back-projected, moved into the
 previous frame's camera (rotation and translation from this camera to that one), projected, and the displacement
-scaled by the shutter's share of the frame interval. The blur averages, at max(1, ceil |b|) + 1 instants spread evenly
-along b (at most `max_samples`), bilinear samples of the frame's factor (1 - alpha) ratio and of the objects' term
+scaled by the shutter's share of the frame interval. The blur averages, at ceil |b| + 1 instants spread evenly along
+b (at most `max_samples`), bilinear samples of the frame's factor (1 - alpha) ratio and of the objects' term
 alpha colour, and blends them with the pixel's camera colour: out = camera * mean(factor) + mean(term), clamped at 0.
 A sample off the box takes the layers' identity (factor 1, term 0), as outside the renderer's region.
 """
