@@ -148,11 +148,11 @@ def summary(result: dict, gt: np.ndarray | None, sun: dict | None = None) -> dic
 
 
 def ensure_synth(folder: Path, kind: str, frames: int, size: str, spp: int, extra: tuple = (),
-                 name: str | None = None) -> tuple[Path, str]:
+                 name: str | None = None, inserts: str = "none") -> tuple[Path, str]:
     """The recording of scene `kind` in folder/name (generated when missing) and the command that makes it."""
     out = folder / (name or kind)
     cmd = ["photoreg", "synth", kind, "--out", str(out), "--frames", str(frames), "--size", size,
-           "--spp", str(spp), "--insert-frames", "none", *extra]
+           "--spp", str(spp), "--insert-frames", inserts, *extra]
     if not (out / "lighting_gt.json").is_file():
         folder.mkdir(parents=True, exist_ok=True)
         subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL)

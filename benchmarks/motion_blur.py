@@ -18,14 +18,15 @@ Writes the generated section of --md.
 from __future__ import annotations
 
 import argparse
-import subprocess
 import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import lighting_accuracy as la  # noqa: E402  (puts the repository first on the path)
+
 from photoreg.bench.score import insert_truth, score_composites  # noqa: E402
 from photoreg.config import load_session, validate  # noqa: E402
 from photoreg.io.images import read_exr, srgb_to_linear  # noqa: E402
@@ -40,12 +41,10 @@ INSERTS = "1,8,15,22"     # frames where the pan turns fastest
 ISOLATED_FRAME = 15
 
 
-def synth(out: Path, shutter: float, size: str, spp: int, frames: int, inserts: str) -> str:
-    cmd = ["photoreg", "synth", "tabletop", "--out", str(out), "--frames", str(frames), "--size", size, "--spp",
-           str(spp), "--camera", "pan", "--insert-frames", inserts, "--shutter", f"{shutter:g}"]
-    if not (out / "scene.json").is_file():
-        subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL)
-    return " ".join(cmd)
+def synth(folder: Path, name: str, shutter: float, size: str, spp: int, frames: int, inserts: str) -> tuple[Path, str]:
+    """The panning tabletop with the shutter open `shutter` seconds, in folder/name (lighting_accuracy.ensure_synth)."""
+    return la.ensure_synth(folder, "tabletop", frames, size, spp, ("--camera", "pan", "--shutter", f"{shutter:g}"),
+                           name, inserts)
 
 
 def insertion_correlation(out: Path, recording: Path) -> float:
@@ -61,8 +60,8 @@ def insertion_correlation(out: Path, recording: Path) -> float:
 def pipeline_rows(folder: Path, shutter: float, size: str, spp: int, frames: int) -> tuple[list[str], list[str]]:
     rows, commands = [], []
     for name, rec_shutter in (("shutter open", shutter), ("an instant", 0.0)):
-        rec = folder / f"pan_{rec_shutter:g}s"
-        commands.append(synth(rec, rec_shutter, size, spp, frames, INSERTS))
+        rec, cmd = synth(folder, f"pan_{rec_shutter:g}s", rec_shutter, size, spp, frames, INSERTS)
+        commands.append(cmd)
         cells = []
         for render_shutter in (0.0, shutter):
             s = load_session(rec / "session.toml")
@@ -79,16 +78,15 @@ def pipeline_rows(folder: Path, shutter: float, size: str, spp: int, frames: int
 
 
 def isolated_row(folder: Path, shutter: float) -> tuple[str, list[str], list[float]]:
-    recs = {s: folder / f"pan_hq_{s:g}s" for s in (shutter, 0.0)}
-    commands = [synth(r, s, "160x120", 1024, 30, str(ISOLATED_FRAME)) for s, r in recs.items()]
+    made = {s: synth(folder, f"pan_hq_{s:g}s", s, "160x120", 1024, 30, str(ISOLATED_FRAME)) for s in (shutter, 0.0)}
+    recs, commands = {s: r for s, (r, _) in made.items()}, [c for _, c in made.values()]
     sharp, blurred = open_recording(recs[0.0]), open_recording(recs[shutter])
     f0, f1, b1 = sharp.frame(ISOLATED_FRAME - 1), sharp.frame(ISOLATED_FRAME), blurred.frame(ISOLATED_FRAME)
     name = f"{ISOLATED_FRAME:06d}.exr"
-    layers = layers_of(read_exr(recs[0.0] / "insert" / name), srgb_to_linear(f1.color),
-                       insert_truth(recs[0.0])[0].mask)
+    sharp_truth = insert_truth(recs[0.0])[0]
+    layers = layers_of(sharp_truth.gt, sharp_truth.camera, sharp_truth.mask)
     cam = srgb_to_linear(b1.color).astype(np.float32)
-    truth = read_exr(recs[shutter] / "insert" / name)
-    roi = insert_truth(recs[0.0])[0].roi
+    truth, roi = read_exr(recs[shutter] / "insert" / name), sharp_truth.roi
     times = [0.0, 0.5 * shutter, shutter, 1.5 * shutter, 2.0 * shutter]
     errors = []
     for t in times:

@@ -100,40 +100,33 @@ def _camera_motion(intr: Intrinsics, pose: np.ndarray, previous: np.ndarray, sha
             wp.vec3(*trans.astype(np.float32)), float(share)]
 
 
-def _depth(depth: np.ndarray, device: str) -> tuple[wp.array, float]:
-    """The box's depth on `device` and the value its unknown pixels (0 or not finite) take: the known ones' median
-    (1 m where none is)."""
-    known = np.isfinite(depth) & (depth > 0)
-    return (wp.array(np.ascontiguousarray(depth, dtype=np.float32), dtype=wp.float32, device=device),
-            float(np.median(depth[known])) if known.any() else 1.0)
+def _on(a: np.ndarray, device: str, dtype=wp.float32) -> wp.array:
+    """A (h, w) or (h, w, 3) host array as a float32 (h, w) Warp array of `dtype` on `device`."""
+    return wp.array(np.ascontiguousarray(a, dtype=np.float32), dtype=dtype, device=device)
 
 
-def motion_lengths(depth: np.ndarray, origin: tuple[int, int], intr: Intrinsics, pose: np.ndarray,
+def motion_lengths(depth: np.ndarray, fill: float, origin: tuple[int, int], intr: Intrinsics, pose: np.ndarray,
                    previous: np.ndarray, share: float, device: str) -> np.ndarray:
-    """(h, w) length in pixels of each pixel's motion over the shutter, for the box of depth `depth` (metres) whose
-    top-left pixel is `origin` (x, y), the camera at `pose` now and at `previous` a frame before."""
+    """(h, w) length in pixels of each pixel's motion over the shutter, for the box of depth `depth` (metres; `fill`
+    where unknown: 0 or not finite) whose top-left pixel is `origin` (x, y), the camera at `pose` now and at
+    `previous` a frame before."""
     h, w = depth.shape
-    d, fill = _depth(depth, device)
     out = wp.empty((h, w), dtype=wp.float32, device=device)
-    launch_rows(_lengths, (h, w), inputs=[d, fill, int(origin[0]), int(origin[1]),
+    launch_rows(_lengths, (h, w), inputs=[_on(depth, device), float(fill), int(origin[0]), int(origin[1]),
                                           *_camera_motion(intr, pose, previous, share)], outputs=[out], device=device)
     return out.numpy()
 
 
 def blur_layers(camera: np.ndarray, alpha: np.ndarray, ratio: np.ndarray, colour: np.ndarray, depth: np.ndarray,
-                origin: tuple[int, int], intr: Intrinsics, pose: np.ndarray, previous: np.ndarray, share: float,
-                max_samples: int, device: str) -> np.ndarray:
+                fill: float, origin: tuple[int, int], intr: Intrinsics, pose: np.ndarray, previous: np.ndarray,
+                share: float, max_samples: int, device: str) -> np.ndarray:
     """(h, w, 3) float32 composite of a box (top-left pixel `origin`, x and y): `camera` (h, w, 3 linear) under the
-    layers `alpha` (h, w), `ratio` and `colour` (h, w, 3), blurred along each pixel's motion (module docstring) on
-    `device` (the CPU's launch split over threads, kernels.launch)."""
+    layers `alpha` (h, w), `ratio` and `colour` (h, w, 3), blurred along each pixel's motion (module docstring; the
+    depth `fill` where unknown) on `device` (the CPU's launch split over threads, kernels.launch)."""
     h, w = alpha.shape
-    vec3 = [wp.array(np.ascontiguousarray(a, dtype=np.float32), dtype=wp.vec3, device=device)
-            for a in (camera, ratio, colour)]
-    d, fill = _depth(depth, device)
     out = wp.empty((h, w), dtype=wp.vec3, device=device)
-    launch_rows(_blur, (h, w), inputs=[vec3[0], wp.array(np.ascontiguousarray(alpha, dtype=np.float32),
-                                                         dtype=wp.float32, device=device), vec3[1], vec3[2], d, fill,
-                                       int(origin[0]), int(origin[1]), *_camera_motion(intr, pose, previous, share),
-                                       int(max_samples)],
+    launch_rows(_blur, (h, w), inputs=[_on(camera, device, wp.vec3), _on(alpha, device), _on(ratio, device, wp.vec3),
+                                       _on(colour, device, wp.vec3), _on(depth, device), float(fill), int(origin[0]),
+                                       int(origin[1]), *_camera_motion(intr, pose, previous, share), int(max_samples)],
                 outputs=[out], device=device)
     return out.numpy()

@@ -63,9 +63,11 @@ def blurred_composite(camera: np.ndarray, layers: Layers, depth: np.ndarray, int
     if box is None or not (box[2] > box[0] and box[3] > box[1]):
         return composite(camera, layers), layers.region
     d = depth[box[1]:box[3], box[0]:box[2]]
-    if not (np.isfinite(d) & (d > 0)).any():
+    known = np.isfinite(d) & (d > 0)
+    if not known.any():
         return composite(camera, layers), layers.region
-    longest = float(motion_lengths(d, box[:2], intr, m.pose, m.previous, m.share, device).max())
+    fill = float(np.median(d[known]))   # the depth of the box's unknown pixels, and of the grown box's
+    longest = float(motion_lengths(d, fill, box[:2], intr, m.pose, m.previous, m.share, device).max())
     if longest < MIN_BLUR_PX:
         return composite(camera, layers), layers.region
     reach = int(math.ceil(longest / 2)) + 1
@@ -76,6 +78,6 @@ def blurred_composite(camera: np.ndarray, layers: Layers, depth: np.ndarray, int
     if not np.isfinite(out).all():
         np.nan_to_num(out, copy=False, nan=0.0, posinf=0.0, neginf=0.0)
     out[rows, cols] = blur_layers(out[rows, cols], layers.alpha[rows, cols], layers.ratio[rows, cols],
-                                  layers.colour[rows, cols], depth[rows, cols], (x0, y0), intr, m.pose, m.previous,
-                                  m.share, MAX_SAMPLES, device)
+                                  layers.colour[rows, cols], depth[rows, cols], fill, (x0, y0), intr, m.pose,
+                                  m.previous, m.share, MAX_SAMPLES, device)
     return out, grown
