@@ -10,7 +10,6 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-from scipy.spatial.transform import Rotation
 
 import photoreg.pipeline as pipeline_module
 from photoreg.cli import main
@@ -18,7 +17,6 @@ from photoreg.config import LightingConfig, Session, load_session, validate
 from photoreg.io.images import linear_to_srgb, srgb_to_linear
 from photoreg.io.recording import iter_frames, open_recording
 from photoreg.preprocess import prepare, strided_box
-from photoreg.recon.tracking import ate_rmse
 from photoreg.runner import run_session
 from photoreg.types import Frame, Intrinsics
 from scenes import write_recording
@@ -90,39 +88,6 @@ def test_real_recordings_give_finite_lighting_for_every_frame(data_dir, tmp_path
     assert summary["frames_processed"] == len(records) == n and not summary["frames_skipped"]
     assert finite_records(records)
     assert all(r["diagnostics"]["n_samples"] > 0 for r in records)
-
-
-def test_tracking_without_poses_on_tum(data_dir, tmp_path):
-    """Poses withheld: frame-to-model tracking follows the motion-capture trajectory."""
-    out = tmp_path / "track"
-    assert main(["run", str(data_dir / "recordings" / "tum_fr1_rpy"), "--no-poses", "--frames", "0:15",
-                 "--rays", "8", "--stride", "8", "--out", str(out), "--quiet"]) == 0
-    tracking = json.loads((out / "summary.json").read_text())["tracking"]
-    assert tracking["failures"] == []
-    assert tracking["ate_rmse_m"] < 0.03
-
-
-def test_ate_is_zero_for_a_rigidly_moved_copy_and_measures_noise():
-    rng = np.random.default_rng(0)
-    gt = {}
-    for i in range(20):
-        T = np.eye(4)
-        T[:3, :3] = Rotation.from_rotvec(rng.normal(size=3) * 0.2).as_matrix()
-        T[:3, 3] = [0.1 * i, np.sin(i), 0.05 * i * i]
-        gt[i] = T
-    A = np.eye(4)
-    A[:3, :3] = Rotation.from_euler("xyz", [10, -30, 70], degrees=True).as_matrix()
-    A[:3, 3] = [1.0, -2.0, 0.5]
-    moved = {i: A @ T for i, T in gt.items()}
-    err, align = ate_rmse(moved, gt)
-    assert err < 1e-9
-    np.testing.assert_allclose(align @ A, np.eye(4), atol=1e-9)
-    noisy = {i: T.copy() for i, T in gt.items()}
-    for T in noisy.values():
-        T[:3, 3] += rng.normal(scale=0.01, size=3)
-    assert 0.005 < ate_rmse(noisy, gt)[0] < 0.02
-    with pytest.raises(ValueError):
-        ate_rmse({0: np.eye(4)}, gt)
 
 
 def test_lighting_every_holds_the_estimate_between_estimates(tmp_path, monkeypatch):

@@ -2,17 +2,34 @@
 
 The current frame (every 2nd pixel) is aligned against the model depth ray-cast from the TSDF by
 the project's Warp kernel at the previous pose (Open3D's own ray_cast crashed intermittently
-here); the first frame defines the world. A failed alignment (low fitness, high error, implausible jump) keeps
-the previous pose, is reported, and the frame is not fused.
+here); the first frame defines the world. Frames that come further apart than the recording's (a live stream's
+dropped frames, --frames A:B:S) move the camera further than point-to-plane odometry converges from a standing
+start. The alignment starts from guesses in turn:
+  1. the motion predicted at constant velocity (the last two tracked frames' motion, scaled to the time since),
+     or no motion without a velocity;
+  2. the motion that ORB features matched between this frame's colour and the last tracked frame's, with that
+     frame's depth under them, give (OpenCV's PnP with RANSAC): it does not need the motion to be small;
+  3. no motion, after a prediction.
+An alignment that lands within AGREE_DEG / AGREE_M of the matched motion is taken at once (at 30 Hz the first
+one, mostly); else the best fit (Open3D's fitness) of those tried wins. A frame none of them aligns (low fitness,
+high error, a correction of its guess too large to be plausible) keeps the previous pose, is reported, and is not
+fused.
 """
 from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+import cv2
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from ..config import ReconstructionConfig
 from ..types import Frame, Intrinsics
+
+MAX_PREDICT_S = 0.5   # no velocity guess across a longer gap since the last tracked frame, nor from an older motion
+AGREE_DEG, AGREE_M = 3.0, 0.05   # an alignment this close to the matched features' motion is taken at once
+ORB_FEATURES = 500    # features per frame for the matched guess
+MIN_PNP_INLIERS = 12  # fewer RANSAC inliers give no matched guess
 
 
 @dataclass
@@ -39,9 +56,14 @@ class Tracker:
         K = intrinsics.K.copy()
         K[:2] /= step
         self.K = o3d.core.Tensor(K, o3d.core.float64)
-        self.limits = (min_fitness, max_rmse, max_jump_m, np.radians(max_jump_deg))
+        self.limits = (min_fitness, max_rmse, max_jump_m, max_jump_deg)
         self.pose: np.ndarray | None = None
+        self.time = 0.0      # timestamp of the last tracked frame
+        self.velocity: tuple[np.ndarray, float] | None = None   # its motion from the one before, and their time apart
         self.model = None   # RGBDImage ray-cast at self.pose after the last fusion
+        self._key = None   # the last tracked frame's ORB features and depth (Tracker._features)
+        self._orb = cv2.ORB_create(ORB_FEATURES)
+        self._matcher = cv2.BFMatcher(cv2.NORM_HAMMING, crossCheck=True)
         self.stats = TrackingStats()
         od = o3d.t.pipelines.odometry
         self.criteria = [od.OdometryConvergenceCriteria(20), od.OdometryConvergenceCriteria(10),
@@ -56,41 +78,106 @@ class Tracker:
     def track(self, frame: Frame, prep) -> tuple[np.ndarray | None, list[str]]:
         """Pose of this frame (camera-to-world), or None with a reason when tracking failed."""
         self.stats.frames += 1
+        features = self._features(frame, prep)
         if self.pose is None:
-            self.pose = np.eye(4)
+            self.pose, self.time, self._key = np.eye(4), frame.timestamp, features
             self.stats.poses[frame.index] = self.pose.copy()
             return self.pose, []
         if self.model is None:
             self.update_model()
-        od = self.o3d.t.pipelines.odometry
         src = self._rgbd(prep.depth[::self.step, ::self.step])
-        try:
-            res = od.rgbd_odometry_multi_scale(src, self.model, self.K, self.o3d.core.Tensor(np.eye(4)), 1.0,
-                                               self.recon.depth_max, self.criteria, od.Method.PointToPlane)
-            T = res.transformation.cpu().numpy()
-            fitness, rmse = float(res.fitness), float(res.inlier_rmse)
-        except RuntimeError as e:  # Open3D raises when too few correspondences
-            T, fitness, rmse = np.eye(4), 0.0, float("inf")
-            reason = f"odometry failed: {e}"
-        else:
-            reason = ""
-        min_fit, max_rmse, max_t, max_r = self.limits
-        angle = np.arccos(np.clip((np.trace(T[:3, :3]) - 1) / 2, -1, 1))
-        if not reason:
-            if fitness < min_fit:
-                reason = f"low fitness {fitness:.2f}"
-            elif rmse > max_rmse:
-                reason = f"high residual {rmse * 1000:.1f} mm"
-            elif np.linalg.norm(T[:3, 3]) > max_t or angle > max_r:
-                reason = f"implausible jump ({np.linalg.norm(T[:3, 3]):.2f} m, {np.degrees(angle):.0f} deg)"
-        self.stats.fitness.append(fitness)
-        if reason:
+        predicted, matched = self.predicted(frame.timestamp), self.matched(features)
+        guesses = ([("the predicted motion", predicted)] if predicted is not None else [("rest", np.eye(4))]) \
+            + ([("matched features", matched)] if matched is not None else []) \
+            + ([("rest", np.eye(4))] if predicted is not None else [])
+        fits, reasons = [], []
+        for name, start in guesses:
+            T, fitness, reason = self._align(src, start)
+            if reason:
+                reasons.append(f"{reason} from {name}")
+                continue
+            fits.append((fitness, T))
+            if matched is None or _agree(T, matched):
+                break
+        if not fits:
+            reason = "; ".join(reasons)
             self.stats.failures.append((frame.index, reason))
             return None, [f"frame {frame.index}: tracking failed: {reason}"]
-        self.pose = self.pose @ T
+        fitness, T = max(fits, key=lambda f: f[0])
+        self.stats.fitness.append(fitness)
+        self.velocity = (T, frame.timestamp - self.time)
+        self.pose, self.time, self._key = self.pose @ T, frame.timestamp, features
         self.stats.poses[frame.index] = self.pose.copy()
         self.model = None  # ray-cast again after this frame is fused
         return self.pose, []
+
+    def _features(self, frame: Frame, prep) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
+        """(pixels (N, 2), ORB descriptors or None, depth (H, W) metres) of a frame, for the matched guesses."""
+        kp, des = self._orb.detectAndCompute(cv2.cvtColor(frame.color, cv2.COLOR_RGB2GRAY), None)
+        return np.array([k.pt for k in kp], np.float32).reshape(-1, 2), des, prep.depth
+
+    def matched(self, features: tuple[np.ndarray, np.ndarray | None, np.ndarray]) -> np.ndarray | None:
+        """The source-to-target motion that ORB `features` of a frame matched with the last tracked frame's give
+        (PnP with RANSAC on the tracked frame's depth under its features), None where too few of them agree."""
+        (pts, des, depth), (xy, cur, _) = self._key, features
+        if des is None or cur is None:
+            return None
+        matches = self._matcher.match(des, cur)
+        if len(matches) < MIN_PNP_INLIERS:
+            return None
+        uv = pts[[m.queryIdx for m in matches]]
+        xy = xy[[m.trainIdx for m in matches]]
+        z = depth[np.clip(np.round(uv[:, 1]).astype(int), 0, depth.shape[0] - 1),
+                  np.clip(np.round(uv[:, 0]).astype(int), 0, depth.shape[1] - 1)]
+        ok = np.isfinite(z) & (z > 0)
+        if ok.sum() < MIN_PNP_INLIERS:
+            return None
+        i = self.intr
+        obj = np.stack([(uv[ok, 0] - i.cx) / i.fx * z[ok], (uv[ok, 1] - i.cy) / i.fy * z[ok], z[ok]], 1)
+        found, rvec, tvec, inliers = cv2.solvePnPRansac(obj.astype(np.float64), xy[ok].astype(np.float64),
+                                                        self.intr.K, None, iterationsCount=200,
+                                                        reprojectionError=3.0)
+        if not found or inliers is None or len(inliers) < MIN_PNP_INLIERS:
+            return None
+        M = np.eye(4)   # the tracked frame's camera to this one's
+        M[:3, :3], M[:3, 3] = cv2.Rodrigues(rvec)[0], tvec.ravel()
+        return np.linalg.inv(M)
+
+    def predicted(self, timestamp: float) -> np.ndarray | None:
+        """The motion from the last tracked pose to the frame at `timestamp` (in the last pose's camera frame, as the
+        odometry's source-to-target transform) at the last two tracked frames' velocity; None without them, or
+        where they or the gap since are over MAX_PREDICT_S apart or out of order."""
+        if self.velocity is None:
+            return None
+        delta, dt = self.velocity
+        gap = timestamp - self.time
+        if not (0 < gap <= MAX_PREDICT_S and 0 < dt <= MAX_PREDICT_S):
+            return None
+        M = np.eye(4)
+        M[:3, :3] = Rotation.from_rotvec(Rotation.from_matrix(delta[:3, :3]).as_rotvec() * (gap / dt)).as_matrix()
+        M[:3, 3] = delta[:3, 3] * (gap / dt)
+        return M
+
+    def _align(self, src, start: np.ndarray) -> tuple[np.ndarray, float, str]:
+        """(source-to-target transform, fitness, why it failed or '') of the frame's depth `src` aligned with the
+        model from the guess `start`; a correction of `start` past the jump limits counts as a failure."""
+        od = self.o3d.t.pipelines.odometry
+        try:
+            res = od.rgbd_odometry_multi_scale(src, self.model, self.K, self.o3d.core.Tensor(start), 1.0,
+                                               self.recon.depth_max, self.criteria, od.Method.PointToPlane)
+        except RuntimeError as e:  # Open3D raises when too few correspondences
+            return start, 0.0, f"odometry failed: {e}"
+        T = res.transformation.cpu().numpy()
+        fitness, rmse = float(res.fitness), float(res.inlier_rmse)
+        min_fit, max_rmse, max_t, max_r = self.limits
+        moved, angle = _size(np.linalg.solve(start, T))
+        if fitness < min_fit:
+            return T, fitness, f"low fitness {fitness:.2f}"
+        if rmse > max_rmse:
+            return T, fitness, f"high residual {rmse * 1000:.1f} mm"
+        if moved > max_t or angle > max_r:
+            return T, fitness, f"implausible jump ({moved:.2f} m, {angle:.0f} deg)"   # past the guess
+        return T, fitness, ""
 
     def update_model(self) -> None:
         from ..kernels.raycast import raycast_surface
@@ -103,6 +190,17 @@ class Tracker:
         s = self.stats
         return {"frames": s.frames, "failures": [{"frame": i, "reason": r} for i, r in s.failures],
                 "median_fitness": float(np.median(s.fitness)) if s.fitness else None}
+
+
+def _size(T: np.ndarray) -> tuple[float, float]:
+    """(metres, degrees) that a rigid motion moves and turns."""
+    return float(np.linalg.norm(T[:3, 3])), float(np.degrees(np.arccos(np.clip((np.trace(T[:3, :3]) - 1) / 2, -1, 1))))
+
+
+def _agree(a: np.ndarray, b: np.ndarray) -> bool:
+    """Whether two rigid motions are within AGREE_M and AGREE_DEG of each other."""
+    moved, angle = _size(np.linalg.solve(a, b))
+    return moved <= AGREE_M and angle <= AGREE_DEG
 
 
 def ate_rmse(est: dict, gt: dict) -> tuple[float, np.ndarray]:
