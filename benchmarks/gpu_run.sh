@@ -60,6 +60,9 @@
 #   blur       the motion blur's unit tests (tests/test_motion_blur.py, the ones without Mitsuba), then `photoreg bench
 #              speed` of TUM with the bunny (raycast G-buffer, stride 4 / 64 / 3, held and --async) with --shutter 0
 #              and 0.016, alternating, BLUR_ROUNDS (default "1 2") rounds (OUTDIR/blur.json)
+#   tracking   camera tracking (--no-poses) on CUDA: tests/test_tracking.py's tests that the carried frames allow,
+#              then benchmarks/tracking.py on RECORDING's carried frames, every 1st, 4th and 8th
+#              (OUTDIR/tracking_cuda.md)
 #   meshgt     MESH_RECS (recordings made with `photoreg synth ... --insert-mesh FILE`, carried over): `photoreg run
 #              --device cuda` of each one's session with the G-buffer drawn (pyrender) and ray-traced, smooth as written
 #              and flat (objects.smooth = false), each scored with `photoreg score --composite` (OUTDIR/meshgt_*.json)
@@ -313,6 +316,12 @@ for step in "$@"; do
         done
       done
       merge /tmp/blur "$out/blur.json" ;;
+    tracking)
+      [ -d .carry/pytest ] && python3 -m pip install -q --no-index --no-deps --target /tmp/site .carry/pytest/*.whl
+      python3 -m pytest -q -p no:cacheprovider tests/test_tracking.py -k "matched or predicted or ate_is" 2>&1 \
+        | tail -3 | tee "$out/tracking_pytest.txt" || true
+      python3 benchmarks/tracking.py --recordings "$(basename "$rec")" --steps 1,4,8 --device cuda 2>/dev/null \
+        | grep "^|" | tee "$out/tracking_cuda.md" ;;
     meshgt)
       for r in $MESH_RECS; do
         name=$(basename "$r")

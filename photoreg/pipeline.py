@@ -481,4 +481,4 @@ class Pipeline:
             self.prev_F = F.sh
         t["total"] = (time.perf_counter() - t_all) * 1000.0
         return FrameResult(frame.index, frame.timestamp, F, diag, sh.dominant_direction(F.sh), t, composite=composite,
-                           composite_region=region)
+                           composite_region=region, pose=pose)

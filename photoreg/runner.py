@@ -88,16 +88,18 @@ def result_record(r: FrameResult) -> dict:
     """One lighting.jsonl object (DESIGN.md 'Files')."""
     return {"frame": r.index, "timestamp": r.timestamp, "bands": r.lighting.bands,
             "sh": np.round(r.lighting.sh, 7).tolist(), "dominant_direction": np.round(r.dominant_direction, 6).tolist(),
-            "diagnostics": r.diagnostics.to_json(), "timings_ms": {k: round(v, 3) for k, v in r.timings_ms.items()}}
+            "diagnostics": r.diagnostics.to_json(), "timings_ms": {k: round(v, 3) for k, v in r.timings_ms.items()},
+            "pose": None if r.pose is None else np.round(r.pose, 7).tolist()}
 
 
-def write_pictures(out: Path, r: FrameResult, pose) -> None:
-    """Lat-long estimate (EXR linear + PNG tonemapped) and a lit sphere seen from the camera."""
+def write_pictures(out: Path, r: FrameResult) -> None:
+    """Lat-long estimate (EXR linear + PNG tonemapped) and a lit sphere seen from the frame's camera (its pose as
+    the pipeline had it: recorded or tracked)."""
     name = f"{r.index:06d}"
     env = latlong(r.lighting.sh)
     write_exr(out / "envmap" / f"{name}.exr", env)
     write_png_rgb(out / "envmap" / f"{name}.png", linear_to_srgb(tonemap(env)))
-    sphere = lit_sphere(r.lighting.sh, pose if pose is not None else np.eye(4))
+    sphere = lit_sphere(r.lighting.sh, r.pose if r.pose is not None else np.eye(4))
     write_png_rgb(out / "sphere" / f"{name}.png", linear_to_srgb(tonemap(sphere)))
 
 
@@ -156,7 +158,7 @@ def run_session(s: Session, quiet: bool = False, on_frame: Callable[[int, int], 
                 f.flush()
                 k = s.output.pictures_every
                 if k and (len(results) - 1) % k == 0:
-                    files.submit(write_pictures, out, r, frame.pose)
+                    files.submit(write_pictures, out, r)
                 if r.composite is not None:
                     files.submit(write_composite, out, r, pipe.render.last.ratio)
                     if video is not None:

@@ -138,3 +138,6 @@ class FrameResult:
     # box (x0, y0, x1, y1) outside which the composite is the frame's own colour, linearised (exactly: its 8-bit
     # sRGB comes back); None: any pixel may differ
     composite_region: tuple[int, int, int, int] | None = None
+    # (4, 4) camera-to-world the frame was fused and lit from: the recording's, or the tracked one (recording.use_poses
+    # false: the world is then the first frame's camera); None where it had none (not fused)
+    pose: np.ndarray | None = None

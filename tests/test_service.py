@@ -36,6 +36,7 @@ from photoreg.service.protocol import (CLIENT_TYPES, ERROR_CODES, Limits, Protoc
                                        decode_composite, decode_frame, encode, encode_composite, encode_frame,
                                        hello_message, lighting_message, parse_hello, ready_message,
                                        record_from_lighting)
+from photoreg.recon.tracking import ate_rmse
 from photoreg.service.server import ServerConfig, ServerThread
 from photoreg.types import Frame, Intrinsics
 from scenes import write_recording
@@ -118,7 +119,7 @@ def test_depth_at_a_lower_resolution_is_scaled_to_the_colour(recording):
 
 def test_text_messages_round_trip():
     hello = parse_hello(decode(encode(hello_message(K, OPTIONS, "tok")))[0], "cpu", Limits())
-    assert hello.intrinsics == K and hello.token == "tok" and hello.version == "1.1" and hello.composite == "jpeg"
+    assert hello.intrinsics == K and hello.token == "tok" and hello.version == "1.2" and hello.composite == "jpeg"
     assert (hello.session.lighting.bands, hello.session.lighting.rays, hello.session.lighting.stride) == (2, 16, 4)
     assert hello.session.reconstruction.voxel_size == 0.02 and hello.session.device == "cpu"
     record = {"frame": 3, "timestamp": 1.5, "bands": 1, "sh": [[1.0]] * 3, "dominant_direction": [0, 0, 1],
@@ -325,9 +326,28 @@ def test_replay_matches_direct_pipeline(server, recording, tmp_path):
     assert [r["frame"] for r in records] == list(range(N_FRAMES))
     assert summary["frames_dropped"] == 0 and not summary["errors"] and summary["stopped"] is None
     assert summary["latency_ms"]["p95"] > 0 and summary["device"] == "cpu" and summary["hello_ms"] > 0
+    poses = open_recording(recording).poses
     for r, sh in zip(records, direct_lighting(recording)):
-        assert set(r) == {"frame", "timestamp", "bands", "sh", "dominant_direction", "diagnostics", "timings_ms"}
+        assert set(r) == {"frame", "timestamp", "bands", "sh", "dominant_direction", "diagnostics", "timings_ms",
+                          "pose"}
         np.testing.assert_allclose(r["sh"], sh, atol=2e-7)
+        np.testing.assert_allclose(r["pose"], poses[r["frame"]], atol=1e-6)   # the frame's own pose, sent back
+
+
+def test_a_stream_without_poses_is_tracked_and_gets_its_poses_back(server, data_dir, tmp_path):
+    """A client that sends no poses (`track`), every 16th frame of TUM fr1_rpy (as a server that drops frames hands
+    them over, 20-60 degrees apart): every reply carries the tracked pose, the first frame's camera the world, and
+    the trajectory follows the motion capture's."""
+    rec_path = data_dir / "recordings" / "tum_fr1_rpy"
+    out = tmp_path / "out"
+    assert main(["stream", str(rec_path), "--url", server.server.url, "--out", str(out), "--no-poses", "--frames",
+                 "0:100:16", "--rays", "8", "--stride", "8", "--quiet"]) == 0
+    records = [json.loads(line) for line in (out / "lighting.jsonl").read_text().splitlines()]
+    assert [r["frame"] for r in records] == list(range(0, 100, 16))
+    np.testing.assert_allclose(records[0]["pose"], np.eye(4), atol=1e-12)
+    gt = open_recording(rec_path).poses
+    tracked = {r["frame"]: np.array(r["pose"]) for r in records}
+    assert ate_rmse(tracked, {i: gt[i] for i in tracked})[0] < 0.03
 
 
 def test_depth_registered_at_a_lower_resolution_streams_at_its_own(server, recording, tmp_path):
@@ -723,10 +743,10 @@ def test_messages_out_of_order_and_versions(server, recording):
         assert json.loads(ws.recv(10))["code"] == "not_ready"
         ws.send(encode({**hello_message(K, OPTIONS), "version": "2.0"}))
         err = json.loads(ws.recv(10))
-        assert err["code"] == "version" and "1.1" in err["message"]
+        assert err["code"] == "version" and "1.2" in err["message"]
         ws.send(encode(hello_message(K, OPTIONS)))
         ready = json.loads(ws.recv(60))
-        assert ready["type"] == "ready" and ready["version"] == "1.1" and ready["compositing"] is False
+        assert ready["type"] == "ready" and ready["version"] == "1.2" and ready["compositing"] is False
         ws.send(encode(hello_message(K, OPTIONS)))
         assert json.loads(ws.recv(10))["code"] == "already_ready"
         ws.send(frame_bytes)

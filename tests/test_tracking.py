@@ -4,16 +4,19 @@ from __future__ import annotations
 import dataclasses
 import json
 
+import cv2
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
 from photoreg.cli import main
 from photoreg.config import LightingConfig, ReconstructionConfig
+from photoreg.io.images import linear_to_srgb
 from photoreg.io.recording import open_recording
+from photoreg.lighting.visualize import lit_sphere, tonemap
 from photoreg.preprocess import prepare
 from photoreg.recon.fusion import FusionConfig, TSDFVolume
-from photoreg.recon.tracking import MAX_PREDICT_S, Tracker, ate_rmse
+from photoreg.recon.tracking import MAX_PREDICT_S, Tracker, _View, ate_rmse
 
 
 def _angle_deg(T: np.ndarray) -> float:
@@ -60,13 +63,26 @@ def test_ate_is_zero_for_a_rigidly_moved_copy_and_measures_noise():
 def test_tracking_frames_far_apart_on_tum(data_dir, tmp_path):
     """Every 16th frame of fr1_rpy (half a second and 20-60 degrees of turn apart, as a live stream that drops
     frames hands them over): the predicted and the feature-matched guesses keep the trajectory on the motion
-    capture's; from a standing start alone 4 of the 7 frames failed and the rest lay 58 mm off."""
+    capture's; from a standing start alone 4 of the 7 frames failed and the rest lay 58 mm off. lighting.jsonl
+    gives each frame's tracked pose (the world: the first frame's camera)."""
     out = tmp_path / "track"
-    assert main(["run", str(data_dir / "recordings" / "tum_fr1_rpy"), "--no-poses", "--frames", "0:100:16",
-                 "--rays", "8", "--stride", "8", "--out", str(out), "--quiet"]) == 0
+    rec_path = data_dir / "recordings" / "tum_fr1_rpy"
+    assert main(["run", str(rec_path), "--no-poses", "--frames", "0:100:16", "--rays", "8", "--stride", "8",
+                 "--out", str(out), "--quiet"]) == 0
     tracking = json.loads((out / "summary.json").read_text())["tracking"]
     assert tracking["failures"] == []
     assert tracking["ate_rmse_m"] < 0.03
+    records = [json.loads(line) for line in (out / "lighting.jsonl").read_text().splitlines()]
+    tracked = {r["frame"]: np.array(r["pose"]) for r in records}
+    assert sorted(tracked) == list(range(0, 100, 16))
+    np.testing.assert_allclose(tracked[0], np.eye(4), atol=1e-12)
+    gt = open_recording(rec_path).poses
+    assert ate_rmse(tracked, {i: gt[i] for i in tracked})[0] == pytest.approx(tracking["ate_rmse_m"], abs=1e-5)
+    # the lit sphere (frame 0's: pictures every 10th frame processed) is seen from the tracked camera, not from the
+    # recorded pose, which lies in the motion capture's world
+    sphere = linear_to_srgb(tonemap(lit_sphere(np.array(records[0]["sh"]), tracked[0])))
+    shown = cv2.cvtColor(cv2.imread(str(out / "sphere" / "000000.png")), cv2.COLOR_BGR2RGB)
+    assert np.abs(shown.astype(int) - sphere.astype(int)).max() <= 1
 
 
 def test_matched_features_give_the_recorded_motion(data_dir):
@@ -76,14 +92,14 @@ def test_matched_features_give_the_recorded_motion(data_dir):
     tracker = _tracker(rec.intrinsics)
     light, recon = LightingConfig(), ReconstructionConfig()
     a, b = rec.frame(0), rec.frame(16)
-    tracker._key = tracker._features(a, prepare(a, light, recon))
-    guess = tracker.matched(tracker._features(b, prepare(b, light, recon)))
+    tracker._key = _View(a, prepare(a, light, recon))
+    guess = tracker.matched(_View(b, prepare(b, light, recon)))
     truth = np.linalg.inv(rec.poses[0]) @ rec.poses[16]
     assert _angle_deg(truth) > 20
     error = np.linalg.solve(truth, guess)
     assert _angle_deg(error) < 3 and np.linalg.norm(error[:3, 3]) < 0.05
     blank = dataclasses.replace(b, color=np.zeros_like(b.color))
-    assert tracker.matched(tracker._features(blank, prepare(blank, light, recon))) is None   # no features, no guess
+    assert tracker.matched(_View(blank, prepare(blank, light, recon))) is None   # no features, no guess
 
 
 def test_predicted_motion_is_the_last_velocity_over_the_gap(data_dir):

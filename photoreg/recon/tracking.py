@@ -4,16 +4,16 @@ The current frame (every 2nd pixel) is aligned against the model depth ray-cast 
 the project's Warp kernel at the previous pose (Open3D's own ray_cast crashed intermittently
 here); the first frame defines the world. Frames that come further apart than the recording's (a live stream's
 dropped frames, --frames A:B:S) move the camera further than point-to-plane odometry converges from a standing
-start. The alignment starts from guesses in turn:
+start. The alignment starts from guesses:
   1. the motion predicted at constant velocity (the last two tracked frames' motion, scaled to the time since),
-     or no motion without a velocity;
+     or no motion without a velocity. Where that alignment fails, or is doubtful (it corrected its guess by more
+     than DOUBT_DEG / DOUBT_M, or fits worse than DOUBT_FIT of the recent frames' median), also:
   2. the motion that ORB features matched between this frame's colour and the last tracked frame's, with that
      frame's depth under them, give (OpenCV's PnP with RANSAC): it does not need the motion to be small;
   3. no motion, after a prediction.
-An alignment that lands within AGREE_DEG / AGREE_M of the matched motion is taken at once (at 30 Hz the first
-one, mostly); else the best fit (Open3D's fitness) of those tried wins. A frame none of them aligns (low fitness,
-high error, a correction of its guess too large to be plausible) keeps the previous pose, is reported, and is not
-fused.
+An alignment that lands within AGREE_DEG / AGREE_M of the matched motion settles it; else the best fit (Open3D's
+fitness) of those tried wins. A frame none of them aligns (low fitness, high error, a correction of its guess too
+large to be plausible) keeps the previous pose, is reported, and is not fused.
 """
 from __future__ import annotations
 
@@ -26,10 +26,34 @@ from scipy.spatial.transform import Rotation
 from ..config import ReconstructionConfig
 from ..types import Frame, Intrinsics
 
-MAX_PREDICT_S = 0.5   # no velocity guess across a longer gap since the last tracked frame, nor from an older motion
-AGREE_DEG, AGREE_M = 3.0, 0.05   # an alignment this close to the matched features' motion is taken at once
+MAX_PREDICT_S = 1.0   # no velocity guess across a longer gap since the last tracked frame, nor from an older motion
+DOUBT_DEG, DOUBT_M = 5.0, 0.03   # an alignment that corrects its guess by more asks the matched features
+DOUBT_FIT = 0.9       # as does one that fits worse than this share of the recent frames' median fitness
+RECENT_FITS = 30      # that median's frames
+AGREE_DEG, AGREE_M = 3.0, 0.05   # an alignment this close to the matched features' motion settles it
 ORB_FEATURES = 500    # features per frame for the matched guess
+MATCH_RATIO = 0.8     # a feature's best match is kept where it is this much nearer than its second (Lowe's test)
 MIN_PNP_INLIERS = 12  # fewer RANSAC inliers give no matched guess
+
+
+class _View:
+    """A tracked frame's colour and depth, its ORB features found when first asked for (most frames at 30 Hz never
+    need them)."""
+
+    def __init__(self, frame: Frame, prep):
+        self.colour = frame.color   # (H, W, 3) uint8 RGB
+        self.depth = prep.depth     # metres, 0 where invalid
+        self._features: tuple[np.ndarray, np.ndarray | None] | None = None
+
+    def features(self, orb) -> tuple[np.ndarray, np.ndarray | None]:
+        """(pixels (N, 2) of the full-size frame, descriptors or None) of `orb` (cv2.ORB) on the frame's grey image at
+        half size (a quarter of the pixels to search; the guess they give is refined by the alignment)."""
+        if self._features is None:
+            grey = cv2.cvtColor(self.colour, cv2.COLOR_RGB2GRAY)
+            grey = cv2.resize(grey, (grey.shape[1] // 2, grey.shape[0] // 2), interpolation=cv2.INTER_AREA)
+            kp, des = orb.detectAndCompute(grey, None)
+            self._features = (np.array([k.pt for k in kp], np.float32).reshape(-1, 2) * 2 + 0.5, des)
+        return self._features
 
 
 @dataclass
@@ -61,9 +85,9 @@ class Tracker:
         self.time = 0.0      # timestamp of the last tracked frame
         self.velocity: tuple[np.ndarray, float] | None = None   # its motion from the one before, and their time apart
         self.model = None   # RGBDImage ray-cast at self.pose after the last fusion
-        self._key = None   # the last tracked frame's ORB features and depth (Tracker._features)
+        self._key: _View | None = None   # the last tracked frame
         self._orb = cv2.ORB_create(ORB_FEATURES)
-        self._matcher = cv2.BFMatcher(cv2.NORM_HAMMING, crossCheck=True)
+        self._matcher = cv2.BFMatcher(cv2.NORM_HAMMING)
         self.stats = TrackingStats()
         od = o3d.t.pipelines.odometry
         self.criteria = [od.OdometryConvergenceCriteria(20), od.OdometryConvergenceCriteria(10),
@@ -78,27 +102,35 @@ class Tracker:
     def track(self, frame: Frame, prep) -> tuple[np.ndarray | None, list[str]]:
         """Pose of this frame (camera-to-world), or None with a reason when tracking failed."""
         self.stats.frames += 1
-        features = self._features(frame, prep)
+        view = _View(frame, prep)
         if self.pose is None:
-            self.pose, self.time, self._key = np.eye(4), frame.timestamp, features
+            self.pose, self.time, self._key = np.eye(4), frame.timestamp, view
             self.stats.poses[frame.index] = self.pose.copy()
             return self.pose, []
         if self.model is None:
             self.update_model()
         src = self._rgbd(prep.depth[::self.step, ::self.step])
-        predicted, matched = self.predicted(frame.timestamp), self.matched(features)
-        guesses = ([("the predicted motion", predicted)] if predicted is not None else [("rest", np.eye(4))]) \
-            + ([("matched features", matched)] if matched is not None else []) \
-            + ([("rest", np.eye(4))] if predicted is not None else [])
         fits, reasons = [], []
-        for name, start in guesses:
+
+        def align(name: str, start: np.ndarray) -> np.ndarray | None:
             T, fitness, reason = self._align(src, start)
             if reason:
                 reasons.append(f"{reason} from {name}")
-                continue
+                return None
             fits.append((fitness, T))
-            if matched is None or _agree(T, matched):
-                break
+            return T
+
+        predicted = self.predicted(frame.timestamp)
+        start = predicted if predicted is not None else np.eye(4)
+        first = align("the predicted motion" if predicted is not None else "rest", start)
+        if first is None or self._doubtful(first, start, fits[-1][0]):
+            matched = self.matched(view)
+            settled = first is not None and matched is not None and _agree(first, matched)
+            if matched is not None and not settled:
+                T = align("matched features", matched)
+                settled = T is not None and _agree(T, matched)
+            if predicted is not None and not settled:
+                align("rest", np.eye(4))
         if not fits:
             reason = "; ".join(reasons)
             self.stats.failures.append((frame.index, reason))
@@ -106,27 +138,31 @@ class Tracker:
         fitness, T = max(fits, key=lambda f: f[0])
         self.stats.fitness.append(fitness)
         self.velocity = (T, frame.timestamp - self.time)
-        self.pose, self.time, self._key = self.pose @ T, frame.timestamp, features
+        self.pose, self.time, self._key = self.pose @ T, frame.timestamp, view
         self.stats.poses[frame.index] = self.pose.copy()
         self.model = None  # ray-cast again after this frame is fused
         return self.pose, []
 
-    def _features(self, frame: Frame, prep) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
-        """(pixels (N, 2), ORB descriptors or None, depth (H, W) metres) of a frame, for the matched guesses."""
-        kp, des = self._orb.detectAndCompute(cv2.cvtColor(frame.color, cv2.COLOR_RGB2GRAY), None)
-        return np.array([k.pt for k in kp], np.float32).reshape(-1, 2), des, prep.depth
+    def _doubtful(self, T: np.ndarray, start: np.ndarray, fitness: float) -> bool:
+        """Whether an alignment needs the matched features' word: it corrected its guess by more than DOUBT_M or
+        DOUBT_DEG, or fits worse than DOUBT_FIT of the recent frames' median fitness."""
+        moved, angle = _size(np.linalg.solve(start, T))
+        recent = self.stats.fitness[-RECENT_FITS:]
+        return moved > DOUBT_M or angle > DOUBT_DEG or (bool(recent) and fitness < DOUBT_FIT * np.median(recent))
 
-    def matched(self, features: tuple[np.ndarray, np.ndarray | None, np.ndarray]) -> np.ndarray | None:
-        """The source-to-target motion that ORB `features` of a frame matched with the last tracked frame's give
+    def matched(self, view: _View) -> np.ndarray | None:
+        """The source-to-target motion that the ORB features of `view` matched with the last tracked frame's give
         (PnP with RANSAC on the tracked frame's depth under its features), None where too few of them agree."""
-        (pts, des, depth), (xy, cur, _) = self._key, features
+        (pts, des), (xy, cur) = self._key.features(self._orb), view.features(self._orb)
         if des is None or cur is None:
             return None
-        matches = self._matcher.match(des, cur)
+        matches = [m[0] for m in self._matcher.knnMatch(des, cur, k=2)
+                   if len(m) == 2 and m[0].distance < MATCH_RATIO * m[1].distance]
         if len(matches) < MIN_PNP_INLIERS:
             return None
         uv = pts[[m.queryIdx for m in matches]]
         xy = xy[[m.trainIdx for m in matches]]
+        depth = self._key.depth
         z = depth[np.clip(np.round(uv[:, 1]).astype(int), 0, depth.shape[0] - 1),
                   np.clip(np.round(uv[:, 0]).astype(int), 0, depth.shape[1] - 1)]
         ok = np.isfinite(z) & (z > 0)

@@ -25,7 +25,9 @@ from ..io.native import depth_to_png16
 from ..io.poses import check_pose
 from ..types import Frame, Intrinsics
 
-PROTOCOL_VERSION = "1.1"   # 1.1: composites of the hello's objects (1.0 accepted objects, sent none)
+# 1.1: composites of the hello's objects (1.0 accepted objects, sent none); 1.2: frame.shutter, frame.depth.width and
+# height (depth at its own size), lighting.pose (the camera pose the server had: the client's, or tracked)
+PROTOCOL_VERSION = "1.2"
 MAJOR = 1
 CLIENT_TYPES = ("hello", "frame", "bye")
 COLOR_ENCODINGS = ("jpeg", "png", "rgb8")    # rgb8: H*W*3 bytes, row-major, R G B
