@@ -11,8 +11,9 @@ from typing import Callable
 import numpy as np
 
 from .config import Session, load_session, parse_frames, validate
-from .io.atomic import write_json
+from .io.atomic import write_json, write_text
 from .io.images import linear_to_srgb, write_exr, write_png_rgb
+from .io.poses import format_tum_line
 from .io.video import VideoOut, frame_rate
 from .io.writer import OutputWriter
 from .lighting.visualize import latlong, lit_sphere, tonemap
@@ -192,6 +193,9 @@ def run_session(s: Session, quiet: bool = False, on_frame: Callable[[int, int], 
     }
     if pipe.tracker is not None:
         summary["tracking"] = pipe.tracker.report()
+        # the tracked trajectory as TUM lines (what trajectory evaluation tools read), frames that failed left out
+        write_text(out / "trajectory.txt", "".join(format_tum_line(r.timestamp, r.pose) + "\n"
+                                                   for r in results if r.pose is not None))
         if rec.has_poses:  # recorded poses were withheld: score the tracked trajectory against them
             from .recon.tracking import ate_rmse
 
@@ -217,7 +221,7 @@ def print_summary(summary: dict, out: str) -> None:
     print(f"mean ms per stage: {stages}  (total {t.get('total', 0):.1f})")
     print(f"outputs in {out}: lighting.jsonl, summary.json, envmap/, sphere/"
           + (", composite/, composite_linear/, lightmap/" if summary.get("objects") else "")
-          + (", composite.mp4" if summary.get("video") else ""))
+          + (", composite.mp4" if summary.get("video") else "") + (", trajectory.txt" if "tracking" in summary else ""))
 
 
 def run_command(args) -> int:

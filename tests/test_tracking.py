@@ -12,6 +12,7 @@ from scipy.spatial.transform import Rotation
 from photoreg.cli import main
 from photoreg.config import LightingConfig, ReconstructionConfig
 from photoreg.io.images import linear_to_srgb
+from photoreg.io.poses import read_tum_trajectory
 from photoreg.io.recording import open_recording
 from photoreg.lighting.visualize import lit_sphere, tonemap
 from photoreg.preprocess import prepare
@@ -78,6 +79,9 @@ def test_tracking_frames_far_apart_on_tum(data_dir, tmp_path):
     np.testing.assert_allclose(tracked[0], np.eye(4), atol=1e-12)
     gt = open_recording(rec_path).poses
     assert ate_rmse(tracked, {i: gt[i] for i in tracked})[0] == pytest.approx(tracking["ate_rmse_m"], abs=1e-5)
+    times, poses = read_tum_trajectory(out / "trajectory.txt")   # the same poses as TUM lines
+    np.testing.assert_allclose(times, [r["timestamp"] for r in records], atol=1e-6)
+    np.testing.assert_allclose(poses, [r["pose"] for r in records], atol=1e-6)
     # the lit sphere (frame 0's: pictures every 10th frame processed) is seen from the tracked camera, not from the
     # recorded pose, which lies in the motion capture's world
     sphere = linear_to_srgb(tonemap(lit_sphere(np.array(records[0]["sh"]), tracked[0])))
