@@ -1,8 +1,8 @@
 """Frame-to-model camera tracking (KinectFusion style) with Open3D point-to-plane odometry.
 
-The current frame (every 2nd pixel) is aligned against the model depth ray-cast from the TSDF by
-the project's Warp kernel at the previous pose (Open3D's own ray_cast crashed intermittently
-here); the first frame defines the world. Frames that come further apart than the recording's (a live stream's
+The current frame (every step-th pixel: TRACK_WIDTH across, every 4th of a 640x480 frame) is aligned against the
+model depth ray-cast from the TSDF by the project's Warp kernel at the previous pose (Open3D's own ray_cast crashed
+intermittently here); the first frame defines the world. Frames that come further apart than the recording's (a live stream's
 dropped frames, --frames A:B:S) move the camera further than point-to-plane odometry converges from a standing
 start. The alignment starts from guesses:
   1. the motion predicted at constant velocity (the last two tracked frames' motion, scaled to the time since),
@@ -26,6 +26,10 @@ from scipy.spatial.transform import Rotation
 from ..config import ReconstructionConfig
 from ..types import Frame, Intrinsics
 
+# Pixels across the tracked images. TUM and ICL-NUIM (benchmarks/tracking.md): 160 (every 4th pixel) tracked as well
+# as 320 (every 2nd; TUM 11.9-16.3 mm against 13.8-16.2, ICL-NUIM 11.7-12.4 against 11.6-12.2) with the pose stage
+# at 14-21 ms against 35-48 on a 2-core CPU, most of it the model's ray cast; 128 and 107 lost on ICL-NUIM (14 mm)
+TRACK_WIDTH = 160
 MAX_PREDICT_S = 1.0   # no velocity guess across a longer gap since the last tracked frame, nor from an older motion
 DOUBT_DEG, DOUBT_M = 5.0, 0.03   # an alignment that corrects its guess by more asks the matched features
 DOUBT_FIT = 0.9       # as does one that fits worse than this share of the recent frames' median fitness
@@ -67,7 +71,7 @@ class TrackingStats:
 class Tracker:
     """Tracks each new frame against the volume's ray-cast model."""
 
-    def __init__(self, volume, intrinsics: Intrinsics, recon: ReconstructionConfig, step: int = 2,
+    def __init__(self, volume, intrinsics: Intrinsics, recon: ReconstructionConfig, step: int | None = None,
                  min_fitness: float = 0.1, max_rmse: float = 0.04, max_jump_m: float = 0.3,
                  max_jump_deg: float = 30.0):
         import open3d as o3d
@@ -76,9 +80,10 @@ class Tracker:
         self.volume = volume
         self.intr = intrinsics
         self.recon = recon
-        self.step = step  # pixel (step*r, step*c) of the frame is pixel (r, c) of the tracked images
+        # pixel (step*r, step*c) of the frame is pixel (r, c) of the tracked images
+        self.step = step or max(1, round(intrinsics.width / TRACK_WIDTH))
         K = intrinsics.K.copy()
-        K[:2] /= step
+        K[:2] /= self.step
         self.K = o3d.core.Tensor(K, o3d.core.float64)
         self.limits = (min_fitness, max_rmse, max_jump_m, max_jump_deg)
         self.pose: np.ndarray | None = None
@@ -170,6 +175,7 @@ class Tracker:
             return None
         i = self.intr
         obj = np.stack([(uv[ok, 0] - i.cx) / i.fx * z[ok], (uv[ok, 1] - i.cy) / i.fy * z[ok], z[ok]], 1)
+        cv2.setRNGSeed(0)   # RANSAC draws from OpenCV's one global generator: the same frames, the same guess
         found, rvec, tvec, inliers = cv2.solvePnPRansac(obj.astype(np.float64), xy[ok].astype(np.float64),
                                                         self.intr.K, None, iterationsCount=200,
                                                         reprojectionError=3.0)
