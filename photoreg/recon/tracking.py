@@ -2,9 +2,9 @@
 
 The current frame (every step-th pixel: TRACK_WIDTH across, every 4th of a 640x480 frame) is aligned against the
 model depth ray-cast from the TSDF by the project's Warp kernel at the previous pose (Open3D's own ray_cast crashed
-intermittently here); the first frame defines the world. Frames that come further apart than the recording's (a live stream's
-dropped frames, --frames A:B:S) move the camera further than point-to-plane odometry converges from a standing
-start. The alignment starts from guesses:
+intermittently here); the first frame defines the world. Frames that come further apart than the recording's (a
+live stream's dropped frames, --frames A:B:S) move the camera further than point-to-plane odometry converges from a
+standing start. The alignment starts from guesses:
   1. the motion predicted at constant velocity (the last two tracked frames' motion, scaled to the time since),
      or no motion without a velocity. Where that alignment fails, or is doubtful (it corrected its guess by more
      than DOUBT_DEG / DOUBT_M, or fits worse than DOUBT_FIT of the recent frames' median), also:
