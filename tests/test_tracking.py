@@ -10,11 +10,12 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from photoreg.cli import main
-from photoreg.config import LightingConfig, ReconstructionConfig
+from photoreg.config import LightingConfig, ReconstructionConfig, Session
 from photoreg.io.images import linear_to_srgb
 from photoreg.io.poses import read_tum_trajectory
 from photoreg.io.recording import open_recording
 from photoreg.lighting.visualize import lit_sphere, tonemap
+from photoreg.pipeline import Pipeline
 from photoreg.preprocess import prepare
 from photoreg.recon.fusion import FusionConfig, TSDFVolume
 from photoreg.recon.tracking import MAX_PREDICT_S, Tracker, _View, ate_rmse
@@ -87,6 +88,29 @@ def test_tracking_frames_far_apart_on_tum(data_dir, tmp_path):
     sphere = linear_to_srgb(tonemap(lit_sphere(np.array(records[0]["sh"]), tracked[0])))
     shown = cv2.cvtColor(cv2.imread(str(out / "sphere" / "000000.png")), cv2.COLOR_BGR2RGB)
     assert np.abs(shown.astype(int) - sphere.astype(int)).max() <= 1
+
+
+def test_tracking_resumes_after_the_camera_is_covered(data_dir):
+    """Frames 30-44 of fr1_rpy black with no depth (a hand over the lens while the camera keeps turning, 45 degrees
+    in half a second): they fail and are reported, and frame 45 on track again against frame 29 (the features); from
+    a standing start every one of the 15 frames after them failed too."""
+    rec = open_recording(data_dir / "recordings" / "tum_fr1_rpy")
+    session = Session(device="cpu")
+    session.recording.use_poses = False
+    session.lighting.rays, session.lighting.stride = 8, 8
+    pipe = Pipeline(session, rec.intrinsics)
+    try:
+        for i in range(60):
+            frame = rec.frame(i)
+            if 30 <= i < 45:
+                frame = dataclasses.replace(frame, color=np.zeros_like(frame.color), depth=np.zeros_like(frame.depth))
+            assert np.isfinite(pipe.process(frame).lighting.sh).all()
+    finally:
+        pipe.close()
+    stats = pipe.tracker.stats
+    assert [i for i, _ in stats.failures] == list(range(30, 45))
+    assert sorted(stats.poses) == [*range(30), *range(45, 60)]
+    assert ate_rmse(stats.poses, {i: rec.poses[i] for i in stats.poses})[0] < 0.03
 
 
 def test_matched_features_give_the_recorded_motion(data_dir):
