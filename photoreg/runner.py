@@ -11,9 +11,9 @@ from typing import Callable
 import numpy as np
 
 from .config import Session, load_session, parse_frames, validate
-from .io.atomic import write_json, write_text
+from .io.atomic import write_json
 from .io.images import linear_to_srgb, write_exr, write_png_rgb
-from .io.poses import format_tum_line
+from .io.poses import write_tum_trajectory
 from .io.video import VideoOut, frame_rate
 from .io.writer import OutputWriter
 from .lighting.visualize import latlong, lit_sphere, tonemap
@@ -194,17 +194,11 @@ def run_session(s: Session, quiet: bool = False, on_frame: Callable[[int, int], 
     if pipe.tracker is not None:
         summary["tracking"] = pipe.tracker.report()
         # the tracked trajectory as TUM lines (what trajectory evaluation tools read), frames that failed left out
-        write_text(out / "trajectory.txt", "".join(format_tum_line(r.timestamp, r.pose) + "\n"
-                                                   for r in results if r.pose is not None))
+        write_tum_trajectory(out / "trajectory.txt", [(r.timestamp, r.pose) for r in results if r.pose is not None])
         if rec.has_poses:  # recorded poses were withheld: score the tracked trajectory against them
-            from .recon.tracking import ate_rmse
+            from .recon.tracking import ate_against
 
-            gt = {i: rec.poses[i] for i in indices if rec.poses[i] is not None}
-            try:
-                summary["tracking"]["ate_rmse_m"] = round(ate_rmse(pipe.tracker.stats.poses, gt)[0], 5)
-            except ValueError as e:
-                summary["tracking"]["ate_rmse_m"] = None
-                summary["tracking"]["ate_note"] = str(e)
+            summary["tracking"].update(ate_against(pipe.tracker.stats.poses, rec.poses))
     write_json(out / "summary.json", summary)
     if not results:   # summary.json says why; a batch or a script must not take the run for a success
         first = f" (frame {skipped[0]['frame']}: {skipped[0]['error']})" if skipped else ""

@@ -28,15 +28,16 @@ from websockets.sync.client import connect as ws_connect
 
 from photoreg.cli import main
 from photoreg.config import Session, load_session
+from photoreg.io.images import linear_to_srgb
+from photoreg.io.poses import read_tum_trajectory
 from photoreg.io.recording import open_recording
 from photoreg.pipeline import Pipeline
+from photoreg.recon.tracking import ate_rmse
 from photoreg.service.client import Client, ServiceClosed, connect, encoded_ahead, replay, session_options
-from photoreg.io.images import linear_to_srgb
 from photoreg.service.protocol import (CLIENT_TYPES, ERROR_CODES, Limits, ProtocolError, composite_message, decode,
                                        decode_composite, decode_frame, encode, encode_composite, encode_frame,
                                        hello_message, lighting_message, parse_hello, ready_message,
                                        record_from_lighting)
-from photoreg.recon.tracking import ate_rmse
 from photoreg.service.server import ServerConfig, ServerThread
 from photoreg.types import Frame, Intrinsics
 from scenes import write_recording
@@ -348,6 +349,13 @@ def test_a_stream_without_poses_is_tracked_and_gets_its_poses_back(server, data_
     gt = open_recording(rec_path).poses
     tracked = {r["frame"]: np.array(r["pose"]) for r in records}
     assert ate_rmse(tracked, {i: gt[i] for i in tracked})[0] < 0.03
+    summary = json.loads((out / "summary.json").read_text())   # scored and written as `photoreg run` does
+    assert summary["tracking"]["frames_tracked"] == len(records)
+    assert summary["tracking"]["ate_rmse_m"] == pytest.approx(ate_rmse(tracked, {i: gt[i] for i in tracked})[0],
+                                                             abs=1e-5)
+    times, poses = read_tum_trajectory(out / "trajectory.txt")
+    np.testing.assert_allclose(poses, [tracked[i] for i in sorted(tracked)], atol=1e-6)
+    np.testing.assert_allclose(times, [r["timestamp"] for r in records], atol=1e-6)
 
 
 def test_depth_registered_at_a_lower_resolution_streams_at_its_own(server, recording, tmp_path):

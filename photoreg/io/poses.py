@@ -6,6 +6,8 @@ import threading
 import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
+from .atomic import write_text
+
 
 def pose_from_tum(values) -> np.ndarray:
     """(tx, ty, tz, qx, qy, qz, qw) -> 4x4 float64 camera-to-world."""
@@ -27,6 +29,11 @@ def pose_to_tum(T: np.ndarray) -> list[float]:
 
 def format_tum_line(t: float, T: np.ndarray) -> str:
     return f"{t:.6f} " + " ".join(f"{x:.9f}" for x in pose_to_tum(T))
+
+
+def write_tum_trajectory(path, stamped) -> None:
+    """(timestamp, 4x4 camera-to-world) pairs as a TUM trajectory file, atomically."""
+    write_text(path, "".join(format_tum_line(t, T) + "\n" for t, T in stamped))
 
 
 def read_tum_trajectory(path) -> tuple[np.ndarray, np.ndarray]:

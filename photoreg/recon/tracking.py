@@ -245,6 +245,16 @@ def _agree(a: np.ndarray, b: np.ndarray) -> bool:
     return moved <= AGREE_M and angle <= AGREE_DEG
 
 
+def ate_against(tracked: dict, recorded) -> dict:
+    """summary.json's score of tracked poses (frame index -> 4x4) against a recording's (index -> 4x4 or None):
+    {"ate_rmse_m"}, or {"ate_rmse_m": None, "ate_note": why} where too few frames have both."""
+    gt = {i: recorded[i] for i in tracked if recorded[i] is not None}
+    try:
+        return {"ate_rmse_m": round(ate_rmse(tracked, gt)[0], 5)}
+    except ValueError as e:
+        return {"ate_rmse_m": None, "ate_note": str(e)}
+
+
 def ate_rmse(est: dict, gt: dict) -> tuple[float, np.ndarray]:
     """Absolute trajectory error (TUM): RMSE of camera positions after the best rigid alignment
     (Horn/Umeyama without scale) of the estimate onto ground truth, over frames present in both.

@@ -276,7 +276,9 @@ def session_options(path: str | Path) -> dict:
 def stream_command(args) -> int:
     """`photoreg stream RECORDING --url URL`: replay a recording through a server, save the replies."""
     from ..config import parse_frames
+    from ..io.poses import write_tum_trajectory
     from ..io.recording import ReadAhead, open_recording
+    from ..recon.tracking import ate_against
     from ..runner import Progress, writer_threads
 
     rec = open_recording(args.recording)
@@ -309,10 +311,14 @@ def stream_command(args) -> int:
         out.mkdir(parents=True, exist_ok=True)
         partial = open(out / "lighting.jsonl.partial", "w")
 
+    tracked: dict[int, tuple[float, np.ndarray]] = {}   # frame -> (timestamp, pose) the server tracked (`track`)
+
     def on_record(record: dict) -> None:
         if partial is not None:
             partial.write(json.dumps(record) + "\n")
             partial.flush()
+        if options.get("track") and record.get("pose") is not None:
+            tracked[record["frame"]] = (record["timestamp"], np.asarray(record["pose"], dtype=np.float64))
         progress.step(f"frame {record['frame']}" + (" (weak)" if record["diagnostics"].get("weak") else ""))
 
     def on_composite(index: int, encoding: str, image: bytes) -> None:
@@ -334,9 +340,15 @@ def stream_command(args) -> int:
         if partial is not None:
             partial.close()
     summary = {"recording": str(rec.path), "url": args.url, "hello_ms": hello_ms, **summary, "frames_skipped": skipped}
+    if options.get("track"):   # as `photoreg run --no-poses` reports it
+        summary["tracking"] = {"frames_tracked": len(tracked)}
+        if rec.has_poses:
+            summary["tracking"].update(ate_against({i: T for i, (_, T) in tracked.items()}, rec.poses))
     if out is not None:
         os.replace(out / "lighting.jsonl.partial", out / "lighting.jsonl")
         write_json(out / "summary.json", summary)
+        if options.get("track"):
+            write_tum_trajectory(out / "trajectory.txt", [tracked[i] for i in sorted(tracked)])
     for sk in skipped:
         print(f"photoreg: skipped frame {sk['frame']}: {sk['error']}", file=sys.stderr)
     for e in summary["errors"]:
@@ -349,6 +361,11 @@ def stream_command(args) -> int:
     if lat["p50"] is not None:
         print(f"latency ms (send to reply): p50 {lat['p50']:.1f}  p95 {lat['p95']:.1f}  p99 {lat['p99']:.1f}; "
               f"server side p50 {srv['p50']:.1f}  p95 {srv['p95']:.1f}")
+    if "tracking" in summary:
+        t = summary["tracking"]
+        print(f"tracked {t['frames_tracked']} of the frames answered"
+              + (f"; ATE against the recording's poses {t['ate_rmse_m'] * 1000:.1f} mm" if t.get("ate_rmse_m") else ""))
     if out is not None:
-        print(f"outputs in {out}: lighting.jsonl, summary.json" + (", composite/" if summary["composites"] else ""))
+        print(f"outputs in {out}: lighting.jsonl, summary.json" + (", composite/" if summary["composites"] else "")
+              + (", trajectory.txt" if "tracking" in summary else ""))
     return 0 if summary["stopped"] is None else 130 if summary["stopped"] == "interrupted" else 1
