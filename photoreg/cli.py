@@ -177,6 +177,8 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--threads", type=int, help="CPU threads for the split kernel launches (default: all cores)")
     b.add_argument("--no-sun", action="store_true", help="without the traced light (lighting.sun = false)")
     b.add_argument("--no-history", action="store_true", help="the current view's samples only (lighting.history = 0)")
+    b.add_argument("--no-poses", action="store_true", help="track the camera instead of using the recorded poses "
+                                                           "(the pose stage timed)")
     b.add_argument("--no-bounce", action="store_true", help="without the bounce term (lighting.bounce = false)")
     b.add_argument("--no-observed-bounce", action="store_true",
                    help="the bounce without the fused luminance of observed hits (lighting.bounce_observed = false)")

@@ -181,17 +181,19 @@ def test_thread_settings(monkeypatch):
 def test_bench_speed_times_the_render_stage_of_a_session(tmp_path, capsys):
     """`photoreg bench speed` on a session file inserts its objects and times the render stage (R_TRV, G-buffer,
     composite) with the rest; on the recording alone there is no render stage (that run also without the
-    observed bounce: --no-observed-bounce reaches the session and the figures say so; and with --async: the
-    estimates collected and the lighting's age in frames are reported)."""
+    observed bounce: --no-observed-bounce reaches the session and the figures say so; with --async: the
+    estimates collected and the lighting's age in frames are reported; and with --no-poses: the camera tracked, its
+    pose stage timed)."""
     demo = Path(__file__).resolve().parents[1] / "data" / "demo"
     for src, name in ((demo / "session.toml", "session"), (demo, "recording")):
         out = tmp_path / f"{name}.json"
-        off = ["--no-observed-bounce", "--async"] if name == "recording" else []
+        off = ["--no-observed-bounce", "--async", "--no-poses"] if name == "recording" else []
         assert main(["bench", "speed", str(src), "--device", "cpu", "--frames", "0:3", "--warmup", "1",
                      "--rays", "16", "--json", str(out)] + off) == 0
         res = json.loads(out.read_text())
         assert res["bounce"] and res["bounce_observed"] == (name == "session")
-        assert res["asynchronous"] == (name == "recording")
+        assert res["asynchronous"] == res["tracked"] == (name == "recording")
+        assert (res["ms_mean"]["pose"] > 1.0) == (name == "recording")   # an alignment, against a matrix handed on
         if name == "session":   # every frame estimated in line: its own lighting
             assert res["estimates"] == 2 and res["lag_frames_mean"] == 0
         else:                   # the timed frames hold frame 0's in-line estimate or a later one of the worker

@@ -77,7 +77,7 @@ def bench_recording(session: Session, warmup: int = 2) -> dict:
         "lag_frames_mean": round(float(np.mean(lags)), 3) if lags else None,
         "estimates": len({e for _, e in estimated}),
         "bounce_observed": L.bounce and L.bounce_observed, "history": L.history,
-        "sun_refine_every": L.sun_refine_every,
+        "sun_refine_every": L.sun_refine_every, "tracked": not session.recording.use_poses,
         "objects": len(session.objects), "shadows": session.render.shadows if session.objects else None,
         "render_stride": session.render.stride if session.objects else None,
         "gbuffer": session.render.gbuffer if session.objects else None,
@@ -123,6 +123,8 @@ def speed_command(args) -> int:
         s.reconstruction.normal_smoothing_voxels = args.normal_smoothing
     if args.no_history:
         s.lighting.history = 0
+    if args.no_poses:
+        s.recording.use_poses = False
     validate(s)
     res = bench_recording(s, warmup=args.warmup)
     stages = "  ".join(f"{k} {v:.1f}" for k, v in res["ms_mean"].items())
@@ -136,7 +138,8 @@ def speed_command(args) -> int:
           f"{res['size']} stride {res['stride']} "
           f"rays {res['rays']} bands {res['bands']}, every {res['every']}{mode}, sun {res['sun']}, "
           f"bounce {res['bounce']} (observed {res['bounce_observed']}), "
-          f"history {res['history']}{render}: {res['frames_per_s']} frames/s (median frame: "
+          f"history {res['history']}{', camera tracked' if res['tracked'] else ''}{render}: {res['frames_per_s']} "
+          f"frames/s (median frame: "
           f"{res['frames_per_s_median']})\n  mean ms: {stages}")
     if args.json_out:
         write_json(args.json_out, res)
