@@ -13,7 +13,10 @@ standing start. The alignment starts from guesses:
   3. no motion, after a prediction.
 An alignment that lands within AGREE_DEG / AGREE_M of the matched motion settles it; else the best fit (Open3D's
 fitness) of those tried wins. A frame none of them aligns (low fitness, high error, a correction of its guess too
-large to be plausible) keeps the previous pose, is reported, and is not fused.
+large to be plausible) keeps the previous pose, is reported, and is not fused. After such a failure the camera may
+have gone anywhere, and point-to-plane alignment of a room's planes can fit a wrong pose well (ICL-NUIM after 3 s
+covered: fitness 0.98, 1 m off), so until a frame tracks again only an alignment that the matched features confirm
+is taken.
 """
 from __future__ import annotations
 
@@ -35,6 +38,10 @@ DOUBT_DEG, DOUBT_M = 5.0, 0.03   # an alignment that corrects its guess by more 
 DOUBT_FIT = 0.9       # as does one that fits worse than this share of the recent frames' median fitness
 RECENT_FITS = 30      # that median's frames
 AGREE_DEG, AGREE_M = 3.0, 0.05   # an alignment this close to the matched features' motion settles it
+# After a failed frame an alignment is taken only this close to the matched features' motion (at large motions the
+# alignment moves several degrees from the features' guess, TUM's every 16th frame: up to 8; a wrong pose that a
+# room's planes fit lay 1 m and 50 degrees off)
+LOST_AGREE_DEG, LOST_AGREE_M = 10.0, 0.15
 ORB_FEATURES = 500    # features per frame for the matched guess
 MATCH_RATIO = 0.8     # a feature's best match is kept where it is this much nearer than its second (Lowe's test)
 MIN_PNP_INLIERS = 12  # fewer RANSAC inliers give no matched guess
@@ -91,6 +98,7 @@ class Tracker:
         self.velocity: tuple[np.ndarray, float] | None = None   # its motion from the one before, and their time apart
         self.model = None   # RGBDImage ray-cast at self.pose after the last fusion
         self._key: _View | None = None   # the last tracked frame
+        self.lost = False   # the frame before failed
         self._orb = cv2.ORB_create(ORB_FEATURES)
         self._matcher = cv2.BFMatcher(cv2.NORM_HAMMING)
         self.stats = TrackingStats()
@@ -125,10 +133,10 @@ class Tracker:
             fits.append((fitness, T))
             return T
 
-        predicted = self.predicted(frame.timestamp)
+        predicted, matched = self.predicted(frame.timestamp), None
         start = predicted if predicted is not None else np.eye(4)
         first = align("the predicted motion" if predicted is not None else "rest", start)
-        if first is None or self._doubtful(first, start, fits[-1][0]):
+        if first is None or self.lost or self._doubtful(first, start, fits[-1][0]):
             matched = self.matched(view)
             settled = first is not None and matched is not None and _agree(first, matched)
             if matched is not None and not settled:
@@ -136,6 +144,12 @@ class Tracker:
                 settled = T is not None and _agree(T, matched)
             if predicted is not None and not settled:
                 align("rest", np.eye(4))
+        if self.lost:   # the camera may be anywhere: only an alignment the features confirm is taken
+            fits = [f for f in fits if matched is not None and _agree(f[1], matched, LOST_AGREE_M, LOST_AGREE_DEG)]
+            if not fits:
+                reasons.append("lost since the last tracked frame: " + (
+                    "no features matched with it" if matched is None else "no alignment agrees with its features"))
+        self.lost = not fits
         if not fits:
             reason = "; ".join(reasons)
             self.stats.failures.append((frame.index, reason))
@@ -239,10 +253,10 @@ def _size(T: np.ndarray) -> tuple[float, float]:
     return float(np.linalg.norm(T[:3, 3])), float(np.degrees(np.arccos(np.clip((np.trace(T[:3, :3]) - 1) / 2, -1, 1))))
 
 
-def _agree(a: np.ndarray, b: np.ndarray) -> bool:
-    """Whether two rigid motions are within AGREE_M and AGREE_DEG of each other."""
+def _agree(a: np.ndarray, b: np.ndarray, metres: float = AGREE_M, degrees: float = AGREE_DEG) -> bool:
+    """Whether two rigid motions are within `metres` and `degrees` of each other."""
     moved, angle = _size(np.linalg.solve(a, b))
-    return moved <= AGREE_M and angle <= AGREE_DEG
+    return moved <= metres and angle <= degrees
 
 
 def ate_against(tracked: dict, recorded) -> dict:
