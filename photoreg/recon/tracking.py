@@ -31,7 +31,8 @@ from ..types import Frame, Intrinsics
 
 # Pixels across the tracked images. TUM and ICL-NUIM (benchmarks/tracking.md): 160 (every 4th pixel) tracked as well
 # as 320 (every 2nd; TUM 11.9-16.3 mm against 13.8-16.2, ICL-NUIM 11.7-12.4 against 11.6-12.2) with the pose stage
-# at 14-21 ms against 35-48 on a 2-core CPU, most of it the model's ray cast; 128 and 107 lost on ICL-NUIM (14 mm)
+# at 14-21 ms against 35-48 on a 2-core CPU, most of it the model's ray cast; 128 and 107 lost on ICL-NUIM (12.7 and
+# 14.2 mm at every frame)
 TRACK_WIDTH = 160
 MAX_PREDICT_S = 1.0   # no velocity guess across a longer gap since the last tracked frame, nor from an older motion
 DOUBT_DEG, DOUBT_M = 5.0, 0.03   # an alignment that corrects its guess by more asks the matched features
