@@ -36,7 +36,6 @@ from photoreg.render.motion_blur import Motion, blurred_composite  # noqa: E402
 from photoreg.runner import run_session  # noqa: E402
 from photoreg.synth.generate import FPS  # noqa: E402
 
-START, END = "<!-- generated:start -->", "<!-- generated:end -->"
 INSERTS = "1,8,15,22"     # frames where the pan turns fastest
 ISOLATED_FRAME = 15
 
@@ -123,10 +122,7 @@ def main() -> int:
              f"render with the shutter open {a.shutter * 1000:g} ms; RMSE in the neighbourhood.", "",
              f"| {header} |", "|" + "---|" * len(errors), "| " + " | ".join(f"{e:.4f}" for e in errors) + " |", "",
              "Recordings:", *[f"- `{c}`" for c in commands + hq_commands]]
-    md = Path(a.md)
-    text = md.read_text() if md.is_file() else f"# Motion blur\n\n{START}\n{END}\n"
-    head, rest = text.split(START, 1)
-    md.write_text(head + START + "\n\n" + "\n".join(lines) + "\n\n" + END + rest.split(END, 1)[1])
+    la.write_generated(Path(a.md), [la.START, "", *lines, "", la.END], "Motion blur")
     print("\n".join(lines))
     return 0
 
