@@ -63,6 +63,8 @@
 #   tracking   camera tracking (--no-poses) on CUDA: tests/test_tracking.py's tests that the carried frames allow,
 #              then benchmarks/tracking.py on RECORDING's carried frames, every 1st, 4th and 8th
 #              (OUTDIR/tracking_cuda.md)
+#   fusion     tests/test_fusion_kernels.py on CUDA where it asks for it (the volume's size limit and its restart):
+#              OUTDIR/fusion_pytest.txt
 #   meshgt     MESH_RECS (recordings made with `photoreg synth ... --insert-mesh FILE`, carried over): `photoreg run
 #              --device cuda` of each one's session with the G-buffer drawn (pyrender) and ray-traced, smooth as written
 #              and flat (objects.smooth = false), each scored with `photoreg score --composite` (OUTDIR/meshgt_*.json)
@@ -322,6 +324,10 @@ for step in "$@"; do
         | tail -3 | tee "$out/tracking_pytest.txt" || true
       python3 benchmarks/tracking.py --recordings "$(basename "$rec")" --steps 1,4,8 --device cuda 2>/dev/null \
         | grep "^|" | tee "$out/tracking_cuda.md" ;;
+    fusion)
+      [ -d .carry/pytest ] && python3 -m pip install -q --no-index --no-deps --target /tmp/site .carry/pytest/*.whl
+      python3 -m pytest -q -p no:cacheprovider -rs tests/test_fusion_kernels.py 2>&1 | tail -5 \
+        | tee "$out/fusion_pytest.txt" || true ;;
     meshgt)
       for r in $MESH_RECS; do
         name=$(basename "$r")

@@ -6,6 +6,7 @@ import importlib
 import sys
 
 from photoreg.config import GBUFFER_BACKENDS, SHADOW_RENDERERS
+from photoreg.device import open3d_message
 
 # subcommand -> "module:function"; the function takes the parsed argparse.Namespace and returns an exit code.
 HANDLERS = {
@@ -250,7 +251,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         return int(getattr(importlib.import_module(module), func)(args) or 0)
     except (ValueError, OSError, RuntimeError) as e:   # OSError: a file that cannot be read or written, named
-        print(f"photoreg {args.command}: error: {e}", file=sys.stderr)
+        print(f"photoreg {args.command}: error: {open3d_message(e)}", file=sys.stderr)
         return 2
 
 

@@ -6,6 +6,7 @@ any frame is processed. Relative paths are relative to the session file's folder
 from __future__ import annotations
 
 import dataclasses
+import math
 import sys
 import types
 import typing
@@ -260,6 +261,8 @@ def _check_object(obj: ObjectConfig, where: str) -> None:
             continue
         if len(v) != n or not all(isinstance(x, (int, float)) and np.isfinite(x) for x in v):
             raise ValueError(f"{where}: objects.{key} must be {n} finite numbers, got {v!r}")
+        if key == "albedo" and not all(0 <= x <= 1 for x in v):
+            raise ValueError(f"{where}: objects.albedo must be reflectances in 0..1 (linear RGB), got {v!r}")
     if not (np.isfinite(obj.scale) and obj.scale > 0):
         raise ValueError(f"{where}: objects.scale must be a positive finite number, got {obj.scale!r}")
     if not obj.mesh:
@@ -294,42 +297,65 @@ def load_session(path: str | Path) -> Session:
                              f"(known: {', '.join(sorted([*sections, 'objects', 'device', 'frames']))})")
     if not s.recording.path:
         raise ValueError(f"{where}: key 'recording.path' is required")
-    s.recording.path = str(resolve_path(s.recording.path, base))
+    s.recording.path = str(resolve_path(s.recording.path, base, f"{where}: recording.path"))
     if not Path(s.recording.path).exists():
         raise FileNotFoundError(f"{where}: recording.path {s.recording.path} does not exist")
     for obj in s.objects:
         _check_object(obj, where)
-        obj.mesh = str(resolve_path(obj.mesh, base))
+        obj.mesh = str(resolve_path(obj.mesh, base, f"{where}: objects.mesh"))
         if not Path(obj.mesh).is_file():
             raise FileNotFoundError(f"{where}: objects.mesh {obj.mesh} does not exist")
-    s.output.dir = str(resolve_path(s.output.dir, base))
+    s.output.dir = str(resolve_path(s.output.dir, base, f"{where}: output.dir"))
     validate(s)
     return s
 
 
-def resolve_path(p: str, base: Path) -> Path:
-    """Expand ~ and $PHOTOREG_DATA-style variables; relative paths are taken from `base`."""
+def resolve_path(p: str, base: Path, what: str) -> Path:
+    """Expand ~ and $PHOTOREG_DATA-style variables; relative paths are taken from `base`. A variable that is not set
+    is an error naming it (`what`: the file and key, for the message)."""
     import os
+    import re
 
+    unset = [m[0] or m[1] for m in re.findall(r"\$\{(\w+)\}|\$(\w+)", p) if (m[0] or m[1]) not in os.environ]
+    if unset:
+        raise ValueError(f"{what} {p!r}: environment variable {', '.join(unset)} is not set")
     q = Path(os.path.expandvars(os.path.expanduser(p)))
     return q if q.is_absolute() else (base / q).resolve()
+
+
+MAX_STRIDE = 64   # lighting.stride, render.stride: a sample's box grows with the stride (stride | 1 pixels square)
 
 
 def validate(s: Session) -> None:
     """Range checks shared by session files and command-line overrides."""
     where = s.source or "options"
     L, R = s.lighting, s.reconstruction
+    try:
+        parse_frames(s.frames, 0)
+    except ValueError as e:
+        raise ValueError(f"{where}: {e}") from None
+    for section in ("reconstruction", "lighting", "render"):
+        for f in dataclasses.fields(getattr(s, section)):
+            v = getattr(getattr(s, section), f.name)
+            if isinstance(v, float) and not math.isfinite(v):
+                raise ValueError(f"{where}: {section}.{f.name} must be a finite number, got {v}")
     checks = [(1 <= L.bands <= 8, "lighting.bands must be in 1..8"),
               (L.rays >= 1, "lighting.rays must be >= 1"),
-              (L.stride >= 1, "lighting.stride must be >= 1"),
+              (1 <= L.stride <= MAX_STRIDE, f"lighting.stride must be in 1..{MAX_STRIDE}"),
               (L.sample_box == 0 or (L.sample_box % 2 == 1 and 1 <= L.sample_box <= 15),
                "lighting.sample_box must be 0 (stride | 1) or odd in 1..15"),
               (L.ray_length > 0, "lighting.ray_length must be > 0"),
+              (L.ray_offset_voxels >= 0, "lighting.ray_offset_voxels must be >= 0"),
+              (0 <= L.black_level < L.saturation_level <= 256,
+               "lighting.black_level and saturation_level must be 8-bit levels, 0 <= black_level < saturation_level "
+               "<= 256 (256: nothing saturates)"),
+              (L.sun_candidates >= 8 and L.sun_samples >= 10 and L.sun_rays >= 1 and 0 <= L.sun_min_gain < 1,
+               "lighting.sun_candidates must be >= 8, sun_samples >= 10, sun_rays >= 1 and sun_min_gain in [0, 1)"),
               (0 <= L.min_visible < 1, "lighting.min_visible must be in [0, 1)"),
               (L.regularization >= 0, "lighting.regularization must be >= 0"),
               (L.sun_regularization >= 0, "lighting.sun_regularization must be >= 0"),
               (L.sun_refine_every >= 1, "lighting.sun_refine_every must be >= 1"),
-              (0 < L.reference_albedo <= 1, "lighting.reference_albedo must be in (0, 1]"),
+              (0.01 <= L.reference_albedo <= 1, "lighting.reference_albedo must be in [0.01, 1]"),
               (1 <= L.max_bands <= 8, "lighting.max_bands must be in 1..8"),
               (L.max_samples >= 1, "lighting.max_samples must be >= 1"),
               (0 <= L.bin_min_fraction < 1, "lighting.bin_min_fraction must be in [0, 1)"),
@@ -342,12 +368,15 @@ def validate(s: Session) -> None:
                "lighting.process_noise must be >= 0 and lighting.change_threshold > 0"),
               (0 < L.new_view_share <= 1, "lighting.new_view_share must be in (0, 1]"),
               (s.render.light_rays >= 0, "render.light_rays must be >= 0"),
-              (s.render.stride >= 1, "render.stride must be >= 1"),
+              (1 <= s.render.stride <= MAX_STRIDE, f"render.stride must be in 1..{MAX_STRIDE}"),
               (s.render.shutter == SHUTTER_CAMERA or (not isinstance(s.render.shutter, str)
                                                       and 0 <= s.render.shutter <= 1),
                f"render.shutter must be seconds in 0..1 or {SHUTTER_CAMERA!r}"),
               (not s.output.video or bool(s.objects), "output.video needs [[objects]]: the video shows the composites"),
               (R.voxel_size > 0, "reconstruction.voxel_size must be > 0"),
+              (R.trunc_voxels > 0, "reconstruction.trunc_voxels must be > 0"),
+              (R.block_count >= 1, "reconstruction.block_count must be >= 1"),
+              (s.output.pictures_every >= 0, "output.pictures_every must be >= 0"),
               (0 < R.depth_min < R.depth_max, "reconstruction.depth_min must be > 0 and < depth_max"),
               (R.depth_filter_px == 0 or (R.depth_filter_px % 2 == 1 and 3 <= R.depth_filter_px <= 15),
                "reconstruction.depth_filter_px must be 0 (off) or odd in 3..15"),
@@ -359,15 +388,17 @@ def validate(s: Session) -> None:
 
 
 def parse_frames(spec: str, n: int) -> list[int]:
-    """'' -> all; 'N' -> first N; 'A:B' or 'A:B:S' -> range (end exclusive, clipped to n)."""
+    """'' -> all; 'N' -> first N; 'A:B' or 'A:B:S' -> range (end exclusive, clipped to n); numbers >= 0, S >= 1."""
     if not spec:
         return list(range(n))
     try:
-        parts = [int(x) if x else None for x in spec.split(":")]
+        parts = [int(x) if x.strip() else None for x in spec.split(":")]
     except ValueError:
-        raise ValueError(f"--frames: expected N, A:B or A:B:S, got {spec!r}") from None
+        parts = []
+    bad = (not 1 <= len(parts) <= 3 or (len(parts) == 1 and parts[0] is None)
+           or any(x is not None and x < 0 for x in parts) or (len(parts) == 3 and parts[2] == 0))
+    if bad:
+        raise ValueError(f"frames (--frames): expected N, A:B or A:B:S with numbers >= 0 and S >= 1, got {spec!r}")
     if len(parts) == 1:
         return list(range(min(parts[0], n)))
-    if len(parts) in (2, 3):
-        return list(range(n))[slice(*parts)]
-    raise ValueError(f"--frames: expected N, A:B or A:B:S, got {spec!r}")
+    return list(range(n))[slice(*parts)]

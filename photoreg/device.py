@@ -4,6 +4,7 @@ from __future__ import annotations
 import ctypes
 import ctypes.util
 import os
+import re
 from pathlib import Path
 
 _WARP_READY = False
@@ -71,3 +72,12 @@ def open3d_device(warp_device: str):
     if warp_device.startswith("cuda") and o3d.core.cuda.is_available():
         return o3d.core.Device("CUDA:" + warp_device.split(":")[1])
     return o3d.core.Device("CPU:0")
+
+
+def open3d_message(error: BaseException) -> str:
+    """An Open3D error's own words: its terminal colour codes and the '[Open3D Error] (C++ signature) file:line:'
+    before them dropped (other errors' text as it is)."""
+    text = re.sub(r"\x1b\[[0-9;]*m", "", str(error)).strip()
+    if text.startswith("[Open3D Error]"):
+        text = text.rsplit(": ", 1)[-1]
+    return text

@@ -40,7 +40,7 @@ from .lighting.solver import SolverConfig
 from .lighting.sun import Sun, SunConfig, SunSearch, disc_rays, sun_term
 from .lighting.temporal import FilterConfig, LightingFilter
 from .preprocess import Prepared, prepare, strided_box
-from .recon.fusion import FusionConfig, TSDFVolume
+from .recon.fusion import RESTART_AFTER, FusionConfig, TSDFVolume, VolumeLimitError
 from .types import Frame, FrameResult, Intrinsics, Lighting, SolveDiagnostics
 
 SAMPLE_SURPLUS = 1.5  # candidates checked per sample kept (the depth agreement test drops a few)
@@ -423,8 +423,16 @@ class Pipeline:
             with self._timed(t, "fuse"):
                 # prepare zeroed the depth below rc.depth_min: clean for a volume that drops no more (a shared one
                 # may), unless the bilateral filter (which may dip just below it) ran
-                self.volume.integrate(prep.depth, self.intrinsics, pose,
-                                      clean=rc.depth_min >= self.volume.cfg.depth_min and not rc.depth_filter_px)
+                restarts = self.volume.restarts
+                try:
+                    self.volume.integrate(prep.depth, self.intrinsics, pose,
+                                          clean=rc.depth_min >= self.volume.cfg.depth_min and not rc.depth_filter_px)
+                except VolumeLimitError as e:   # a wrong pose, as a rule: the frame counts as one without a pose
+                    pose, notes = None, [*notes, f"frame {frame.index}: {e}"]
+                if self.volume.restarts != restarts:
+                    notes = [*notes, f"frame {frame.index}: the fused volume started again from this frame "
+                                     f"({RESTART_AFTER} frames in a row did not fit with it: the earlier poses were "
+                                     "wrong, or the camera moved past the volume's size)"]
         return prep, pose, list(notes)
 
     def estimate(self, frame: Frame, prep: Prepared, pose: np.ndarray | None, notes: list[str],
@@ -477,6 +485,9 @@ class Pipeline:
             diag.notes.append(f"{prep.saturated_fraction:.0%} of pixels saturated")
         if prep.black_fraction > 0.5:
             diag.notes.append(f"{prep.black_fraction:.0%} of pixels black")
+        if prep.valid_depth_fraction < 0.5:
+            diag.notes.append(f"{1 - prep.valid_depth_fraction:.0%} of pixels without depth (0, NaN or outside "
+                              "reconstruction.depth_min..depth_max)")
         if not diag.weak:
             self.prev_F = F.sh
         t["total"] = (time.perf_counter() - t_all) * 1000.0

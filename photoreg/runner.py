@@ -23,12 +23,18 @@ from .types import FrameResult
 # waited for them)
 WRITER_THREADS = 4
 DEMO_SESSION = Path(__file__).resolve().parents[1] / "data" / "demo" / "session.toml"
+# OUT/.complete: written by `photoreg batch` once a session's outputs are whole, removed by every run that starts
+COMPLETE_MARKER = ".complete"
+# a run's per-frame files, folder -> extensions: the NNNNNN.ext an earlier run left and a finished run did not write
+# are removed, so that a folder never mixes two runs (photoreg score would take them for this run's)
+PICTURE_DIRS = {"envmap": (".exr", ".png"), "sphere": (".png",)}
+COMPOSITE_DIRS = {"composite": (".png",), "composite_linear": (".exr",), "lightmap": (".exr",)}
 
 
 def session_from_args(args) -> Session:
     """Session from a .toml file or a bare recording folder, with command-line overrides applied."""
     src = Path(args.input)
-    if src.suffix == ".toml":
+    if src.suffix.lower() == ".toml":
         s = load_session(src)
     else:
         if not src.exists():
@@ -113,6 +119,22 @@ def write_composite(out: Path, r: FrameResult, lightmap: np.ndarray) -> None:
     write_exr(out / "lightmap" / f"{name}.exr", lightmap)
 
 
+def remove_earlier(out: Path, kept: dict[str, set[str]], files: tuple[str, ...]) -> list[Path]:
+    """Remove what an earlier run left in `out` and this finished run did not write: in each per-frame folder
+    (PICTURE_DIRS, COMPOSITE_DIRS) the NNNNNN.ext files not among kept[folder] (their stems), and the named
+    `files` (composite.mp4, trajectory.txt where this run wrote none). Other files are never touched."""
+    removed = []
+    for folder, exts in {**PICTURE_DIRS, **COMPOSITE_DIRS}.items():
+        d = out / folder
+        if d.is_dir():
+            removed += [p for p in d.iterdir() if p.suffix in exts and len(p.stem) == 6 and p.stem.isdigit()
+                        and p.stem not in kept.get(folder, set())]
+    removed += [out / name for name in files if (out / name).is_file()]
+    for p in removed:
+        p.unlink(missing_ok=True)
+    return removed
+
+
 def writer_threads() -> int:
     """Threads writing a run's files beside the frames: half the threads CPU kernel launches may use (the frames
     keep the rest; a batch worker's share of the cores), at most WRITER_THREADS, at least one."""
@@ -136,7 +158,10 @@ def run_session(s: Session, quiet: bool = False, on_frame: Callable[[int, int], 
         print(f"photoreg: {s.recording.path} has no poses: tracking the camera instead", file=sys.stderr)
         s.recording.use_poses = False
     out = Path(s.output.dir)
+    if out.exists() and not out.is_dir():
+        raise NotADirectoryError(f"output folder {out} (--out / [output] dir) is a file")
     out.mkdir(parents=True, exist_ok=True)
+    (out / COMPLETE_MARKER).unlink(missing_ok=True)   # whatever this run leaves, it is not a batch's finished outputs
     pipe = Pipeline(s, rec.intrinsics)
     skipped: list[dict] = []
     results: list[FrameResult] = []
@@ -171,9 +196,14 @@ def run_session(s: Session, quiet: bool = False, on_frame: Callable[[int, int], 
             reader.close()
             pipe.close()
     progress.close()
+    if video is not None and not video.close():
+        video = None
+    if not results:   # an earlier run's outputs stand; a batch or a script must not take this run for a success
+        partial.unlink(missing_ok=True)
+        first = f" (frame {skipped[0]['frame']}: {skipped[0]['error']})" if skipped else ""
+        raise ValueError(f"{s.recording.path}: no frame could be processed, all {len(skipped)} selected were "
+                         f"skipped{first}; nothing in {out} was replaced")
     os.replace(partial, out / "lighting.jsonl")
-    if video is not None:
-        video.close()
     wall = time.perf_counter() - t0
     for sk in skipped:
         print(f"photoreg: skipped frame {sk['frame']}: {sk['error']}", file=sys.stderr)
@@ -200,10 +230,15 @@ def run_session(s: Session, quiet: bool = False, on_frame: Callable[[int, int], 
 
             summary["tracking"].update(ate_against(pipe.tracker.stats.poses, rec.poses))
     write_json(out / "summary.json", summary)
-    if not results:   # summary.json says why; a batch or a script must not take the run for a success
-        first = f" (frame {skipped[0]['frame']}: {skipped[0]['error']})" if skipped else ""
-        raise ValueError(f"{s.recording.path}: no frame could be processed, all {len(skipped)} selected were "
-                         f"skipped{first}")
+    k = s.output.pictures_every
+    pictures = {f"{r.index:06d}" for n, r in enumerate(results) if k and n % k == 0}
+    composites = {f"{r.index:06d}" for r in results if r.composite is not None}
+    kept = {**{d: pictures for d in PICTURE_DIRS}, **{d: composites for d in COMPOSITE_DIRS}}
+    stale = [name for name, written in (("composite.mp4", video is not None), ("trajectory.txt", "tracking" in summary))
+             if not written]
+    removed = remove_earlier(out, kept, tuple(stale))
+    if removed:
+        print(f"photoreg: removed {len(removed)} file(s) an earlier run left in {out}", file=sys.stderr)
     return summary
 
 

@@ -38,11 +38,12 @@ def recording(tmp_path_factory) -> Path:
 
 @pytest.fixture
 def three_sessions(tmp_path, recording) -> tuple[list[Path], Path]:
-    """Sessions a and b on the good recording; 'broken' on a copy whose intrinsics.json is corrupt, which
-    load_session accepts (the folder exists) but the run refuses."""
+    """Sessions a and b on the good recording; 'broken' on a copy whose colour images are all corrupt, which the
+    batch's checks accept (the recording opens) but the run refuses (no frame can be processed)."""
     broken_rec = tmp_path / "broken_rec"
     shutil.copytree(recording, broken_rec)
-    (broken_rec / "intrinsics.json").write_text("{not json")
+    for png in (broken_rec / "rgb").glob("*.png"):
+        png.write_bytes(b"not a png")
     paths = [write_session(tmp_path, "a", recording), write_session(tmp_path, "broken", broken_rec),
              write_session(tmp_path, "b", recording)]
     return paths, tmp_path / "report"
@@ -59,8 +60,8 @@ def check_three_session_run(tmp_path: Path, report: Path, capsys) -> dict:
     assert [r["name"] for r in summary["sessions"]] == ["a", "broken", "b"]
     assert summary["counts"] == {"ok": 2, "failed": 1, "skipped": 0}
     broken = by_name["broken"]
-    assert broken["status"] == "failed" and "intrinsics.json" in broken["error"]
-    assert "open_recording" in broken["traceback"] and not (tmp_path / "out" / "broken" / ".complete").exists()
+    assert broken["status"] == "failed" and "no frame could be processed" in broken["error"]
+    assert "run_session" in broken["traceback"] and not (tmp_path / "out" / "broken" / ".complete").exists()
     for name in ("a", "b"):
         r, out = by_name[name], tmp_path / "out" / name
         assert r["status"] == "ok" and r["error"] is None and r["device"] == "cpu"
@@ -102,6 +103,19 @@ def test_local_batch_failure_resume_and_changed_session(three_sessions, tmp_path
     assert mtimes(tmp_path / "out" / "a") == {k[2:]: v for k, v in before.items() if k.startswith("a/")}
     assert "batch: 1 session(s) on 1 worker process(es) on the CPU" in capsys.readouterr().err
 
+    # a marker that is not the batch's (a JSON list) does not mark anything complete: a runs again, no traceback
+    (tmp_path / "out" / "a" / ".complete").write_text("[1]")
+    assert main(["batch", *good, "--resume", "--out", str(report)]) == 0
+    summary = json.loads((report / "batch_summary.json").read_text())
+    assert [r["status"] for r in summary["sessions"]] == ["ok", "skipped"]
+    # a plain `photoreg run` into a complete session's folder takes the batch's marker away: it runs again
+    assert main(["run", str(paths[2]), "--frames", "0:1", "--quiet"]) == 0
+    assert not (tmp_path / "out" / "b" / ".complete").exists()
+    assert main(["batch", *good, "--resume", "--out", str(report)]) == 0
+    summary = json.loads((report / "batch_summary.json").read_text())
+    assert [r["status"] for r in summary["sessions"]] == ["skipped", "ok"]
+    assert summary["sessions"][1]["frames"] == FRAMES
+
 
 def test_invalid_sessions_reported_before_any_work(tmp_path, recording, capsys):
     good = write_session(tmp_path, "good", recording)
@@ -111,11 +125,19 @@ def test_invalid_sessions_reported_before_any_work(tmp_path, recording, capsys):
     missing = write_session(tmp_path, "missing", tmp_path / "no_such_recording")
     twin = write_session(tmp_path, "twin", recording)
     twin.write_text(twin.read_text().replace("out/twin", "out/good"))
+    frames = write_session(tmp_path, "frames", recording)
+    frames.write_text(frames.read_text().replace('frames = "0:3"', 'frames = "abc"'))
+    corrupt_rec = tmp_path / "corrupt_rec"   # the recording opens at the start: its calibration is read
+    shutil.copytree(recording, corrupt_rec)
+    (corrupt_rec / "intrinsics.json").write_text("{not json")
+    corrupt = write_session(tmp_path, "corrupt", corrupt_rec)
     report = tmp_path / "report"
-    args = ["batch", *map(str, [good, unknown, wrong_type, missing, twin]), "--out", str(report)]
+    args = ["batch", *map(str, [good, unknown, wrong_type, missing, twin, frames, corrupt, good]), "--out", str(report)]
     assert main(args) == 2
     err = capsys.readouterr().err
-    assert "4 problem(s)" in err
+    assert "7 problem(s)" in err
+    assert f"{good}: listed twice" in err and f"{frames}: frames (--frames): expected N" in err
+    assert f"{corrupt_rec / 'intrinsics.json'}:1: not valid JSON" in err
     assert f"{unknown}: unknown section or key 'colour'" in err
     assert f"{wrong_type}: key 'lighting.rays' must be int" in err
     assert f"{missing}: recording.path" in err and "does not exist" in err

@@ -12,7 +12,7 @@ from photoreg.kernels.grid import SDF_NUMPY
 from photoreg.kernels.raycast import raycast_surface
 from photoreg.kernels.transfer import make_direction_set, radiance_transfer
 from photoreg.lighting.sh import unoccluded_transfer
-from photoreg.recon.fusion import FusionConfig, TSDFVolume
+from photoreg.recon.fusion import RESTART_AFTER, FusionConfig, TSDFVolume, VolumeLimitError
 from photoreg.synth.analytic import PrimitiveScene, box_room
 from photoreg.synth.cameras import default_intrinsics, look_at
 
@@ -188,11 +188,43 @@ def test_empty_volume_gives_an_empty_grid():
     assert not maps.valid.any()
 
 
-def test_dense_brick_limit_is_a_clear_error():
-    cfg = FusionConfig(voxel_size=VOXEL, block_resolution=8, max_dense_voxels=20000)
-    vol = fuse(box_room(), K160, room_poses(1), cfg)
-    with pytest.raises(RuntimeError, match="max_dense_voxels"):
-        vol.dense_grid()
+@pytest.mark.parametrize("device", ["cpu", pytest.param("cuda", marks=pytest.mark.skipif(
+    not init_warp().is_cuda_available(), reason="no CUDA device here (runs on the GPU machine: gpu_run.sh fusion)"))])
+def test_a_frame_past_the_brick_limit_is_not_fused(device):
+    """A frame whose depth would stretch the brick past max_dense_voxels (a wrong pose, as a rule) raises before
+    anything is fused, and the volume stays as it was; far-off poses do not overflow the count. RESTART_AFTER such
+    frames in a row start the volume again (the wrong pose was the earlier one, or the camera walked off)."""
+    scene, pose = box_room(), room_poses(1)[0]
+    depth, _ = scene.render_depth(K160, pose)
+    small = TSDFVolume(FusionConfig(voxel_size=VOXEL, block_resolution=8, max_dense_voxels=20000), device)
+    with pytest.raises(VolumeLimitError, match="max_dense_voxels = 20000"):
+        small.integrate(depth, K160, pose)
+    assert small.frames_integrated == 0 and small.active_block_coords().shape[0] == 0
+
+    vol = TSDFVolume(FusionConfig(voxel_size=VOXEL, block_resolution=8), device)
+    vol.integrate(depth, K160, pose)
+    g1 = vol.dense_grid()
+    before, blocks = g1.sdf.numpy().copy(), vol.active_block_coords().shape[0]
+    for shift in (100.0, 1e6):
+        far = pose.copy()
+        far[:3, 3] += shift
+        with pytest.raises(VolumeLimitError, match="was not fused"):
+            vol.integrate(depth, K160, far)
+    assert vol.frames_integrated == 1 and vol.active_block_coords().shape[0] == blocks
+    g2 = vol.dense_grid()
+    assert g2.shape == g1.shape and np.array_equal(g2.sdf.numpy(), before)
+    # a frame that fits ends the run of refusals; RESTART_AFTER far ones in a row start the volume again from the last
+    vol.integrate(depth, K160, pose)
+    assert vol.rejected_in_row == 0 and vol.frames_integrated == 2
+    far = pose.copy()
+    far[:3, 3] += 100.0
+    for _ in range(RESTART_AFTER - 1):
+        with pytest.raises(VolumeLimitError):
+            vol.integrate(depth, K160, far)
+    vol.integrate(depth, K160, far)
+    assert vol.restarts == 1 and vol.rejected_in_row == 0 and vol.frames_integrated == 3
+    g3 = vol.dense_grid()
+    assert np.all(g3.origin > g1.origin + 90.0) and vol.active_block_coords().shape[0] == blocks
 
 
 def test_volume_holds_depth_only_and_meshes():

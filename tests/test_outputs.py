@@ -157,7 +157,7 @@ def test_frames_read_ahead_in_order_with_the_unreadable_ones_reported(tmp_path):
 def test_run_skips_an_unreadable_frame_and_names_it(tmp_path, capsys):
     """`photoreg run` of a recording with a corrupt colour image: every other frame is processed in order, the bad
     one is listed in summary.json's frames_skipped with the file's error; with none readable the run is an error
-    (exit status 2) that names the first, summary.json written all the same."""
+    (exit status 2) that names the first, and the earlier run's lighting.jsonl and summary.json stay as they were."""
     from photoreg.cli import main
     from photoreg.io.recording import open_recording
     from photoreg.types import Intrinsics
@@ -174,14 +174,40 @@ def test_run_skips_an_unreadable_frame_and_names_it(tmp_path, capsys):
     assert [r["frame"] for r in records] == [0, 2, 3] and summary["frames_processed"] == 3
     (skipped,) = summary["frames_skipped"]
     assert skipped["frame"] == 1 and str(bad) in skipped["error"]
-    for path in open_recording(root).color_files:   # none readable: the run fails, summary.json says why
+    before = {name: (out / name).read_bytes() for name in ("summary.json", "lighting.jsonl")}
+    for path in open_recording(root).color_files:   # none readable: the run fails and replaces nothing
         path.write_bytes(b"not a png")
     capsys.readouterr()
     assert main(["run", str(root), "--out", str(out), "--device", "cpu", "--quiet"]) == 2
     first = open_recording(root).color_files[0]
-    assert f"no frame could be processed, all 4 selected were skipped (frame 0: {first}" in capsys.readouterr().err
-    summary = json.loads((out / "summary.json").read_text())
-    assert summary["frames_processed"] == 0 and len(summary["frames_skipped"]) == 4
+    err = capsys.readouterr().err
+    assert f"no frame could be processed, all 4 selected were skipped (frame 0: {first}" in err
+    assert f"nothing in {out} was replaced" in err
+    assert {name: (out / name).read_bytes() for name in before} == before
+    assert not (out / "lighting.jsonl.partial").exists()
+
+
+def test_a_run_leaves_only_its_own_outputs(tmp_path, capsys):
+    """A run into a folder holding an earlier run's outputs: once it finishes, the earlier run's per-frame files it
+    did not write again (pictures, composites, lightmaps), its video and its tracked trajectory are gone (photoreg
+    score would take them for this run's), and with them a batch's completion marker; other files stay."""
+    from photoreg.cli import main
+
+    args = ["run", str(REPO / "data" / "demo" / "session.toml"), "--out", str(tmp_path), "--rays", "16", "--stride",
+            "8", "--bands", "2", "--device", "cpu", "--quiet"]
+    assert main(args + ["--frames", "3:4", "--video", "--no-poses"]) == 0
+    earlier = {p.relative_to(tmp_path).as_posix() for p in tmp_path.rglob("*") if p.is_file()}
+    assert {"composite/000003.png", "envmap/000003.exr", "lightmap/000003.exr", "composite.mp4",
+            "trajectory.txt"} <= earlier
+    (tmp_path / "composite" / "notes.txt").write_text("mine")
+    (tmp_path / ".complete").write_text("{}")
+    capsys.readouterr()
+    assert main(args + ["--frames", "0:2"]) == 0
+    files = {p.relative_to(tmp_path).as_posix() for p in tmp_path.rglob("*") if p.is_file()}
+    assert files == {"lighting.jsonl", "summary.json", "composite/notes.txt", "envmap/000000.exr", "envmap/000000.png",
+                     "sphere/000000.png", *(f"{d}/00000{i}.{e}" for i in (0, 1) for d, e in
+                                            (("composite", "png"), ("composite_linear", "exr"), ("lightmap", "exr")))}
+    assert f"removed {len(earlier) - 2} file(s) an earlier run left in {tmp_path}" in capsys.readouterr().err
 
 
 def test_run_stops_with_the_failed_write_named(tmp_path):

@@ -70,6 +70,14 @@ def test_session_overrides_and_bad_options(tmp_path):
         bad.write_text(demo.replace(albedo, f"albedo = {value}"))
         with pytest.raises(ValueError, match=message):
             load_session(bad)
+    bad.write_text(demo.replace(f'path = "{where}"', 'path = "${PHOTOREG_NO_SUCH_VARIABLE}/demo"'))
+    with pytest.raises(ValueError, match=re.escape(f"{bad}: recording.path '${{PHOTOREG_NO_SUCH_VARIABLE}}/demo': "
+                                                   "environment variable PHOTOREG_NO_SUCH_VARIABLE is not set")):
+        load_session(bad)
+    upper = tmp_path / "demo.TOML"   # a session file whatever the suffix's case
+    upper.write_text(demo)
+    assert main(["run", str(upper), "--frames", "0:1", "--rays", "8", "--bands", "1", "--out", str(tmp_path / "o"),
+                 "--quiet"]) == 0
 
 
 @pytest.mark.slow
@@ -185,6 +193,64 @@ def test_render_stride_is_the_shadows_own(tmp_path, monkeypatch):
     s.render.stride = 0
     with pytest.raises(ValueError, match="render.stride"):
         validate(s)
+
+
+@pytest.mark.parametrize("section, key, value, message", [
+    ("lighting", "process_noise", float("inf"), "lighting.process_noise must be a finite number, got inf"),
+    ("lighting", "regularization", float("nan"), "lighting.regularization must be a finite number"),
+    ("reconstruction", "depth_max", float("inf"), "reconstruction.depth_max must be a finite number"),
+    ("lighting", "reference_albedo", 1e-300, "lighting.reference_albedo must be in [0.01, 1]"),
+    ("lighting", "ray_offset_voxels", -1.0, "lighting.ray_offset_voxels must be >= 0"),
+    ("lighting", "saturation_level", 300, "lighting.black_level and saturation_level must be 8-bit levels"),
+    ("lighting", "black_level", 250, "lighting.black_level and saturation_level must be 8-bit levels"),
+    ("lighting", "sun_candidates", 0, "lighting.sun_candidates must be >= 8"),
+    ("lighting", "stride", 100, "lighting.stride must be in 1..64"),
+    ("reconstruction", "trunc_voxels", 0.0, "reconstruction.trunc_voxels must be > 0"),
+    ("reconstruction", "block_count", -5, "reconstruction.block_count must be >= 1"),
+    ("output", "pictures_every", -1, "output.pictures_every must be >= 0"),
+    (None, "frames", "0:4:0", "frames (--frames): expected N, A:B or A:B:S with numbers >= 0 and S >= 1"),
+])
+def test_settings_out_of_range_are_named(section, key, value, message):
+    """Every setting is checked before a frame runs (NaN and infinities included), the message naming it."""
+    s = Session()
+    setattr(s if section is None else getattr(s, section), key, value)
+    s.source = "my.toml"
+    with pytest.raises(ValueError, match=re.escape(f"my.toml: {message}")):
+        validate(s)
+
+
+def test_a_frame_with_a_far_off_pose_is_left_out(tmp_path):
+    """A recorded pose 1 km off (a tracking glitch) would stretch the volume past its limit: that frame is neither
+    fused nor lit (weak, previous estimate, no pose), its note names it, and the frames after it go on as before.
+    Where the wrong pose is the first one, the volume starts again at the third right frame in a row, named too."""
+    k = Intrinsics(80, 60, 70.0, 70.0, 39.5, 29.5, 5000.0)
+    rec = open_recording(write_recording(tmp_path / "rec", k, 5))
+    s = Session()
+    s.device, s.lighting.rays, s.lighting.bands, s.lighting.stride = "cpu", 16, 2, 2
+    s.reconstruction.voxel_size = 0.02
+
+    def run(far: int):
+        pipe = pipeline_module.Pipeline(s, k)
+        results = []
+        for frame in iter_frames(rec):
+            if frame.index == far:
+                frame.pose = frame.pose.copy()
+                frame.pose[:3, 3] += 1000.0
+            results.append(pipe.process(frame))
+        return pipe, results
+
+    first_pipe, first = run(0)
+    assert [r.pose is None for r in first] == [False, True, True, False, False]
+    assert any(n.startswith("frame 3: the fused volume started again from this frame (3 frames in a row")
+               for n in first[3].diagnostics.notes), first[3].diagnostics.notes
+    assert first_pipe.volume.restarts == 1 and not first[4].diagnostics.weak
+    pipe, results = run(2)
+    bad = results[2]
+    assert bad.pose is None and bad.diagnostics.weak and np.array_equal(bad.lighting.sh, results[1].lighting.sh)
+    assert any(n.startswith("frame 2: dense SDF brick would need") and "was not fused" in n
+               for n in bad.diagnostics.notes), bad.diagnostics.notes
+    assert pipe.volume.frames_integrated == 4 and results[3].pose is not None and not results[3].diagnostics.weak
+    assert all(np.all(np.isfinite(r.lighting.sh)) for r in results)
 
 
 def test_the_renderers_draw_the_traced_light_filtered():

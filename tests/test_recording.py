@@ -15,7 +15,7 @@ from scipy.spatial.transform import Rotation
 from photoreg.cli import main
 from photoreg.io.poses import check_pose, format_tum_line, interpolate_poses, read_tum_trajectory
 from photoreg.io.recording import iter_frames, open_recording
-from photoreg.io.redwood import numbered_images
+from photoreg.io.redwood import numbered
 from photoreg.io.tum import associate, read_timestamped
 
 W, H = 8, 6
@@ -286,7 +286,7 @@ def _frame_error(root: Path, i: int = 1) -> Exception:
 @pytest.mark.parametrize("case", [
     "missing depth.txt", "unsorted rgb.txt", "malformed rgb.txt", "bad timestamp", "non-finite pose",
     "non-unit quaternion", "broken intrinsics.json", "intrinsics.json missing key", "intrinsics.txt unknown key",
-    "intrinsics.json bad shutter", "intrinsics.txt bad shutter",
+    "intrinsics.json bad shutter", "intrinsics.txt bad shutter", "intrinsics.json unknown key",
 ])
 def test_index_errors_name_file_and_line(tmp_path, case):
     write_native(tmp_path)
@@ -320,6 +320,9 @@ def test_index_errors_name_file_and_line(tmp_path, case):
     elif case == "intrinsics.json bad shutter":
         js.write_text(json.dumps({**json.loads(js.read_text()), "shutter": 16}))
         where = f"{js}: shutter must be seconds in 0..1, found 16"
+    elif case == "intrinsics.json unknown key":   # a misspelt depth_scale would take the default
+        js.write_text(json.dumps({**json.loads(js.read_text()), "depthscale": 1000}))
+        where = f"{js}: unknown key(s) 'depthscale'"
     elif case == "intrinsics.txt bad shutter":
         js.unlink()
         txt = tmp_path / "intrinsics.txt"
@@ -406,15 +409,22 @@ def test_unknown_tum_sensor_asks_for_intrinsics(tmp_path):
     assert "intrinsics.json" in str(_open_error(root))
 
 
-def test_redwood_errors(tmp_path, icl_path):
-    root = tmp_path / "icl"
+def _write_redwood(root: Path, icl_path: Path, n: int, ext: str) -> Path:
+    """A Redwood folder of n 64 x 48 frames (frame i: colour 10 i, depth 1000 + i units) and ICL-NUIM's first n poses
+    as trajectory.log; returns the log."""
     (root / "color").mkdir(parents=True)
     (root / "depth").mkdir()
-    for i in range(3):
-        cv2.imwrite(str(root / f"color/{i:05d}.jpg"), np.zeros((480, 640, 3), np.uint8))
-        cv2.imwrite(str(root / f"depth/{i:05d}.png"), np.zeros((480, 640), np.uint16))
+    for i in range(n):
+        cv2.imwrite(str(root / f"color/{i:05d}.{ext}"), np.full((48, 64, 3), 10 * i, np.uint8))
+        cv2.imwrite(str(root / f"depth/{i:05d}.png"), np.full((48, 64), 1000 + i, np.uint16))
     log = root / "trajectory.log"
-    log.write_text("".join(open(icl_path / "trajectory_open3d_estimated.log").readlines()[:15]))
+    log.write_text("".join(open(icl_path / "trajectory_open3d_estimated.log").readlines()[:5 * n]))
+    return log
+
+
+def test_redwood_errors(tmp_path, icl_path):
+    root = tmp_path / "icl"
+    log = _write_redwood(root, icl_path, 3, "jpg")
     rec = open_recording(root)
     assert rec.format == "redwood" and len(rec) == 3 and rec.has_poses
 
@@ -428,17 +438,38 @@ def test_redwood_errors(tmp_path, icl_path):
 
     with pytest.raises(ValueError, match="no distortion coefficients"):
         open_recording(root, undistort=True)
+    (root / "depth/00002.png").unlink()   # paired by number, frame 2 without depth: the test below
+    for i in range(2):   # timestamps for names: the first numbers repeat and pair nothing
+        (root / f"depth/{i:05d}.png").rename(root / f"depth/1305031102.{i}.png")
+    assert "holds 3 images but" in str(_open_error(root))
+
+
+def test_redwood_pairs_frames_by_number(tmp_path, icl_path):
+    """A frame missing from either folder neither shifts the pairs nor the .log's poses onto other frames."""
+    root = tmp_path / "icl"
+    _write_redwood(root, icl_path, 4, "png")
+    (root / "intrinsics.txt").write_text("fx 50\nfy 50\ncx 31.5\ncy 23.5\nwidth 64\nheight 48\ndepth_scale 1000\n")
+    full = open_recording(root)
+    (root / "color/00001.png").unlink()
     (root / "depth/00002.png").unlink()
-    assert "holds 3 images" in str(_open_error(root))
+    rec = open_recording(root)
+    assert len(rec) == 3 and [p.name for p in rec.color_files] == ["00000.png", "00002.png", "00003.png"]
+    assert np.allclose(rec.timestamps, [0, 2 / 30, 3 / 30])
+    assert any("1 colour image(s) without a depth image" in n for n in rec.notes)
+    assert any("1 depth image(s) without a colour image" in n and "00001.png" in n for n in rec.notes)
+    assert np.array_equal(rec.poses[1], full.poses[2]) and np.array_equal(rec.poses[2], full.poses[3])
+    f = rec.frame(2)
+    assert f.color[0, 0, 0] == 30 and abs(f.depth[0, 0] - 1.003) < 1e-6
+    assert f"{root / 'depth' / '00002.png'}: no such file" in str(_frame_error(root, 1))
 
 
 def test_numbered_images_order(tmp_path):
     for name in ["000010-000000333.jpg", "000002-000000066.jpg", "000001-000000033.jpg", "notes.txt"]:
         (tmp_path / name).write_bytes(b"")
-    assert [p.name[:6] for p in numbered_images(tmp_path)] == ["000001", "000002", "000010"]
+    assert [p.name[:6] for p in numbered(tmp_path).values()] == ["000001", "000002", "000010"]
     (tmp_path / "000002-000000066.png").write_bytes(b"")
     with pytest.raises(ValueError, match="same frame number"):
-        numbered_images(tmp_path)
+        numbered(tmp_path)
 
 
 def test_7scenes_errors(tmp_path):

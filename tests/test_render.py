@@ -67,8 +67,22 @@ def test_bad_objects_are_errors(tmp_path):
         load_scene([ObjectConfig(mesh=str(empty))])
     with pytest.raises(ValueError, match="cube.obj"):
         load_scene([_cube(tmp_path, position=[0.0, math.nan, 0.0])])
+    with pytest.raises(ValueError, match=r"cube.obj: the object spans 100 m as placed \(scale 100.0\), more than 50 m"):
+        load_scene([_cube(tmp_path, scale=100.0)])
     with pytest.raises(ValueError, match="no renderer"):
         get_renderer("raytraced")
+
+
+def test_objects_far_apart_get_a_coarser_grid(tmp_path):
+    """The objects' SDF grid holds at most GRID_MAX_VOXELS: two 1 m cubes 40 m apart (at the TSDF's 1 cm some 4000 x
+    120 x 120 voxels) get coarser ones, and both are still inside (negative) at their centres."""
+    from photoreg.render.scene import GRID_MAX_VOXELS, voxel_grid
+
+    scene = load_scene([_cube(tmp_path, position=[0.0, 0.0, 0.0]), _cube(tmp_path, position=[40.0, 0.0, 0.0])])
+    grid = voxel_grid(scene, 0.01, "cpu")
+    assert math.prod(grid.shape) <= GRID_MAX_VOXELS and grid.voxel_size > 0.015
+    idx = np.rint(grid.world_to_index(np.array([[0.0, 0.0, 0.0], [40.0, 0.0, 0.0]]))).astype(int)
+    assert (grid.sdf.numpy()[tuple(idx.T)] < 0).all()
 
 
 def test_gbuffer_known_projection_and_real_occlusion(tmp_path):

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import re
 
 import numpy as np
 import pytest
@@ -735,6 +736,9 @@ def test_pipeline_hard_frames_are_finite_weak_and_named(sample_kernel):
         assert results[i].diagnostics.weak and results[i].diagnostics.notes, i
     assert any("black" in n for n in results[4].diagnostics.notes)
     assert any("saturated" in n for n in results[5].diagnostics.notes)
+    assert any(re.fullmatch(r"(89|9[01])% of pixels without depth \(0, NaN or outside reconstruction.depth_min.."
+                            r"depth_max\)", n) for n in results[6].diagnostics.notes), results[6].diagnostics.notes
+    assert not any("without depth" in n for n in results[3].diagnostics.notes)
     # good frames (a box on a floor: 4 normals, so rank-deficient at 5 bands): the light is found (a lost light
     # is 60-100 degrees off; every frame here is 33-36 degrees off). Frame 9: 35.3 degrees (this orbit turns
     # 3.4 degrees a frame, so frames 3, 6 and 9 start views, where the filter's prior is discounted), 35.2 with

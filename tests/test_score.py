@@ -134,6 +134,16 @@ def test_errors_are_clear(tmp_path):
     out, rec = write_run(tmp_path, gt, [gt, json.dumps({"frame": 0, "sh": gt.tolist()})])
     with pytest.raises(ValueError, match="frame 0 already given on line 1"):
         score(out, rec)
+    out, rec = write_run(tmp_path, gt, [json.dumps({"frame": True, "sh": gt.tolist()})])
+    with pytest.raises(ValueError, match=r"lighting\.jsonl:1: 'frame' must be a non-negative integer, got True"):
+        score(out, rec)
+    sun = {"frame": 0, "sh": gt.tolist(), "diagnostics": {"sun": {"direction": [0, 0]}}}
+    out, rec = write_run(tmp_path, gt, [json.dumps(sun)])
+    with pytest.raises(ValueError, match=r"lighting\.jsonl:1: diagnostics\.sun\.direction must be 3 numbers"):
+        score(out, rec)
+    out, rec = write_run(tmp_path, gt, [])
+    with pytest.raises(ValueError, match=r"lighting\.jsonl: no frames"):
+        score(out, rec)
     with pytest.raises(FileNotFoundError, match="lighting_gt.json"):
         score(out, tmp_path / "nowhere")
     (out / "lighting.jsonl").unlink()

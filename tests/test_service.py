@@ -238,6 +238,11 @@ BAD_HELLOS = [
     ({"options": {"objects": [{"mesh": "x", "scale": -1.0}]}}, "bad_field"),
     ({"options": {"track": "yes"}}, "bad_field"),
     ({"options": []}, "bad_field"),
+    ({"version": "\u00b2.0"}, "bad_field"),          # a digit to isdigit(), not to int()
+    ({"version": "1" * 5000}, "bad_field"),            # past Python's integer-string limit
+    ({"intrinsics": {**K.to_json(), "fx": 10 ** 400}}, "bad_field"),   # too large for a float
+    ({"options": {"objects": [{"mesh": "x", "albedo": [-5.0, 1e6, 0.0]}]}}, "bad_field"),
+    ({"options": {"lighting": {"process_noise": float("inf")}}}, "bad_field"),
 ]
 
 
@@ -251,7 +256,7 @@ def test_bad_hello_names_the_problem(change, code):
             msg[key] = value
     with pytest.raises(ProtocolError) as e:
         parse_hello(msg, "cpu", Limits())
-    assert e.value.code == code and e.value.message
+    assert e.value.code == code and e.value.message and not e.value.message.startswith(code)
 
 
 def _bad_frames(recording) -> list[tuple[bytes | str, str]]:
@@ -269,6 +274,9 @@ def _bad_frames(recording) -> list[tuple[bytes | str, str]]:
         (_frame_msg(recording, timestamp=None), "missing_field"),
         (_frame_msg(recording, timestamp="noon"), "bad_field"),
         (_frame_msg(recording, index=-1), "bad_field"),
+        (_frame_msg(recording, index=2 ** 70), "bad_field"),    # past the integers JSON clients hold exactly
+        (_frame_msg(recording, timestamp=10 ** 400), "bad_field"),
+        (_frame_msg(recording, pose=[[1, 0, 0, 1.7e308], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]), "bad_field"),
         (_frame_msg(recording, pose=[[float("nan")] * 4] * 4), "bad_field"),   # NaN survives JSON as NaN
         (_frame_msg(recording, pose=[[2, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]), "bad_field"),
         (_frame_msg(recording, pose=pose[:3]), "bad_field"),
@@ -533,6 +541,29 @@ def test_the_next_frame_is_handed_in_and_runs_while_a_composite_is_encoded(tmp_p
     assert order == [(kind, i) for i in range(3) for kind in ("lighting", "composite")]
     at = dict(events[::-1])   # the first time of each event
     assert at["handed 1"] < at["done 0"] and at["process 1"] < at["encode end"]
+
+
+def test_a_reply_that_cannot_be_encoded_is_an_error_and_the_replies_go_on(recording, monkeypatch):
+    """A frame whose reply cannot be encoded (a value JSON cannot hold: NaN, as a pose 1e308 m off once gave): that
+    frame gets an 'internal' error naming it, the frames after it their replies, and bye its answer. Before, the
+    connection's replies stopped there for good, and the client slot and the server's shutdown waited for ever."""
+    import photoreg.service.server as server_module
+
+    made = server_module.lighting_message
+
+    def with_nan(record, *args):
+        msg = made(record, *args)
+        return {**msg, "latency_ms": float("nan")} if record["frame"] == 1 else msg
+
+    monkeypatch.setattr(server_module, "lighting_message", with_nan)
+    with ServerThread(ServerConfig(port=0, device="cpu", idle_timeout=60, processes=False, queue=4)) as running:
+        client = connect(running.server.url, open_recording(recording).intrinsics,
+                         {"lighting": {"rays": 16, "bands": 2, "stride": 4}})
+        summary = replay(client, list(open_recording(recording))[:3], window=1, reply_timeout=60)
+    assert summary["frames_processed"] == 2 and summary["server_bye"]["reason"] == "client said bye"
+    (error,) = summary["errors"]
+    assert error["frame"] == 1 and error["code"] == "internal" and "frame 1: the reply could not be made" in \
+        error["message"]
 
 
 def test_frames_decode_two_at_a_time_and_are_answered_in_order(recording, monkeypatch):
@@ -858,6 +889,9 @@ def test_limits_clients_token_idle(recording):
         assert e.value.code == "unauthorized"
         with pytest.raises(ProtocolError) as e:
             connect(url, K, OPTIONS)
+        assert e.value.code == "unauthorized"
+        with pytest.raises(ProtocolError) as e:   # a lone surrogate (valid JSON, not UTF-8): refused like any other
+            connect(url, K, OPTIONS, token="\ud800")
         assert e.value.code == "unauthorized"
         wait_for(lambda: running.server.stats()["connections"] == 0)
         c = connect(url, K, OPTIONS, token="s3cret")

@@ -347,6 +347,8 @@ def test_kinect_like_noise():
     (["plane", "--insert-mesh", "/nonexistent/bunny.obj"], "--insert-mesh /nonexistent/bunny.obj: no such mesh file"),
     (["plane", "--insert-mesh", __file__, "--insert-texture"], "does not combine with --insert-mesh"),
     (["plane", "--shutter", "0.05"], "--shutter 0.05: seconds in 0..0.0333"),
+    (["plane", "--yaw", "nan"], "--yaw nan: need a finite angle"),
+    (["plane", "--seed", "-1"], "--seed -1: need an integer in 0..2^32-1"),
 ])
 def test_bad_input_is_named(tmp_path, capsys, argv, message):
     assert cli.main(["synth", *argv[:1], "--out", str(tmp_path / "o"), *argv[1:]]) == 2

@@ -18,8 +18,7 @@ from pathlib import Path
 
 from ..config import Session, load_session
 from ..io.atomic import atomic_path, write_json, write_text
-
-COMPLETE_MARKER = ".complete"
+from ..runner import COMPLETE_MARKER
 PLOT_NAME = "batch_speed_vs_error.png"
 TRACEBACK_LINES = 15
 
@@ -36,25 +35,31 @@ class SessionTask:
 
 
 def plan(paths: list[str], device: str | None = None) -> list[SessionTask]:
-    """Validate every session file; raise one ValueError listing all problems (nothing has run then).
+    """Validate every session file and open its recording; raise one ValueError listing all problems (nothing has
+    run then).
 
     `device` (the --device option) overrides each session's device. Two sessions writing to the same
     output folder are refused, since they would overwrite each other."""
+    from ..io.recording import open_recording
+
     errors, tasks = [], []
     for i, p in enumerate(paths):
         try:
             s = load_session(p)
+            open_recording(s.recording.path, fmt=s.recording.format, undistort=s.recording.undistort)
         except (ValueError, OSError) as e:
             errors.append(str(e) if str(Path(p)) in str(e) else f"{p}: {e}")
             continue
         if device:
             s.device = device
         tasks.append(SessionTask(i, str(p), Path(p).stem, s, hashlib.sha256(Path(p).read_bytes()).hexdigest()))
-    by_out: dict[str, str] = {}
+    by_out: dict[str, SessionTask] = {}
     for t in tasks:
-        other = by_out.setdefault(str(Path(t.session.output.dir).resolve()), t.path)
-        if other != t.path:
-            errors.append(f"{t.path}: output.dir {t.session.output.dir} is also the output folder of {other}")
+        other = by_out.setdefault(str(Path(t.session.output.dir).resolve()), t)
+        if other is not t:
+            same = Path(other.path).resolve() == Path(t.path).resolve()
+            errors.append(f"{t.path}: listed twice" if same else
+                          f"{t.path}: output.dir {t.session.output.dir} is also the output folder of {other.path}")
     if errors:
         raise ValueError(f"{len(errors)} problem(s) in the session files; nothing was run:\n  " + "\n  ".join(errors))
     stems = [t.name for t in tasks]
@@ -74,6 +79,8 @@ def completed_result(task: SessionTask) -> dict | None:
         with open(out / "lighting.jsonl") as f:
             lines = sum(1 for line in f if line.strip())
     except (OSError, ValueError):
+        return None
+    if not isinstance(marker, dict) or not isinstance(summary, dict):
         return None
     if marker.get("session_sha256") != task.digest or summary.get("frames_processed") != lines:
         return None

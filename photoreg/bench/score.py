@@ -111,7 +111,7 @@ def load_lighting(out: str | Path) -> tuple[dict[int, np.ndarray], dict[int, lis
             if not isinstance(obj, dict) or "frame" not in obj or "sh" not in obj:
                 raise ValueError(f"{where}: expected an object with 'frame' and 'sh'")
             frame = obj["frame"]
-            if not isinstance(frame, int) or frame < 0:
+            if isinstance(frame, bool) or not isinstance(frame, int) or frame < 0:
                 raise ValueError(f"{where}: 'frame' must be a non-negative integer, got {frame!r}")
             if frame in frames:
                 raise ValueError(f"{where}: frame {frame} already given on line {lines[frame]}")
@@ -122,7 +122,11 @@ def load_lighting(out: str | Path) -> tuple[dict[int, np.ndarray], dict[int, lis
                 frames[frame] = _sh_array(obj["sh"], bands, where)
             light = (obj.get("diagnostics") or {}).get("sun")
             lights[frame] = light.get("direction") if isinstance(light, dict) else None
+            if lights[frame] is not None and np.asarray(lights[frame]).shape != (3,):
+                raise ValueError(f"{where}: diagnostics.sun.direction must be 3 numbers, got {lights[frame]!r}")
             lines[frame] = lineno
+    if not frames:
+        raise ValueError(f"{path}: no frames (an empty run's file?)")
     return frames, lights
 
 

@@ -96,7 +96,7 @@ def speed_command(args) -> int:
 
     if args.threads is not None:
         set_cpu_threads(args.threads)
-    if args.recording.endswith(".toml"):   # a session: its objects are inserted, the render stage timed too
+    if args.recording.lower().endswith(".toml"):   # a session: its objects are inserted, the render stage timed too
         s = load_session(args.recording)
     else:
         s = Session()

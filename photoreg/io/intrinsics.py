@@ -44,6 +44,9 @@ def checked_intrinsics(values: dict, where: str) -> Intrinsics:
                       float(values["cx"]), float(values["cy"]), float(values["depth_scale"]))
 
 
+JSON_KEYS = ("width", "height", "fx", "fy", "cx", "cy", "depth_scale", "shutter")
+
+
 def read_intrinsics_json(path: Path, depth_scale: float) -> tuple[Intrinsics, float | None]:
     """(intrinsics, shutter) of intrinsics.json {width, height, fx, fy, cx, cy, depth_scale, shutter}; depth_scale
     defaults to `depth_scale`, shutter (seconds) to None."""
@@ -53,6 +56,9 @@ def read_intrinsics_json(path: Path, depth_scale: float) -> tuple[Intrinsics, fl
         raise ValueError(f"{path}:{e.lineno}: not valid JSON ({e.msg})") from None
     if not isinstance(data, dict):
         raise ValueError(f"{path}: expected a JSON object")
+    unknown = [k for k in data if k not in JSON_KEYS]
+    if unknown:   # a misspelt depth_scale would silently take the default
+        raise ValueError(f"{path}: unknown key(s) {', '.join(map(repr, unknown))} (expected {', '.join(JSON_KEYS)})")
     missing = [k for k in ("width", "height", "fx", "fy", "cx", "cy") if k not in data]
     if missing:
         raise ValueError(f"{path}: missing {', '.join(missing)}")

@@ -84,9 +84,13 @@ def interpolate_poses(ts: np.ndarray, poses: np.ndarray, query: np.ndarray, max_
 _checked = threading.local()   # per thread, the last pose found rigid (as bytes)
 
 
+MAX_TRANSLATION = 1e9   # metres: farther is no camera's pose (and overflows where a pose is rounded for a file)
+
+
 def check_pose(T: np.ndarray, where: str) -> np.ndarray:
-    """A finite rigid 4x4 transform, or a ValueError naming `where`. The pose a thread checked last passes at once:
-    a frame's stages check the same pose three or four times (0.1 ms each on the H100's host)."""
+    """A finite rigid 4x4 transform within MAX_TRANSLATION of the origin, or a ValueError naming `where`. The pose a
+    thread checked last passes at once: a frame's stages check the same pose three or four times (0.1 ms each on the
+    H100's host)."""
     T = np.asarray(T, dtype=np.float64)
     key = T.tobytes() if T.shape == (4, 4) else None
     if key is not None and getattr(_checked, "pose", None) == key:
@@ -96,5 +100,7 @@ def check_pose(T: np.ndarray, where: str) -> np.ndarray:
     R = T[:3, :3]
     if np.abs(R @ R.T - np.eye(3)).max() > 1e-3 or np.linalg.det(R) < 0.99 or np.abs(T[3] - [0, 0, 0, 1]).max() > 1e-6:
         raise ValueError(f"{where}: pose is not a rigid transform")
+    if np.abs(T[:3, 3]).max() > MAX_TRANSLATION:
+        raise ValueError(f"{where}: pose translation {T[:3, 3].tolist()} is beyond {MAX_TRANSLATION:g} m")
     _checked.pose = key
     return T

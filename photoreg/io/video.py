@@ -23,7 +23,8 @@ def frame_rate(timestamps: np.ndarray) -> float:
 
 
 class VideoOut:
-    """Linear RGB frames (H, W, 3) appended in order to `path` as sRGB at `fps`; close() finishes and renames."""
+    """Linear RGB frames (H, W, 3) appended in order to `path` as sRGB at `fps`; close() finishes and renames, or
+    drops a video of no frames (an earlier one under that name stays)."""
 
     def __init__(self, path: str | Path, width: int, height: int, fps: float):
         self.path = Path(path)
@@ -40,6 +41,11 @@ class VideoOut:
         self.writer.write(cv2.cvtColor(linear_to_srgb(linear), cv2.COLOR_RGB2BGR))
         self.frames += 1
 
-    def close(self) -> None:
+    def close(self) -> bool:
+        """Finish the video; True when it was written under its name, False when it had no frames."""
         self.writer.release()
+        if not self.frames:
+            self.tmp.unlink(missing_ok=True)
+            return False
         os.replace(self.tmp, self.path)
+        return True

@@ -12,6 +12,7 @@ Open3D 0.20 conventions (checked in tests/test_fusion_kernels.py):
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -23,6 +24,17 @@ from photoreg.preprocess import masked_depth
 from photoreg.types import Intrinsics
 
 wp = init_warp()
+
+
+class VolumeLimitError(ValueError):
+    """A frame would stretch the dense brick past FusionConfig.max_dense_voxels (a wrong pose, usually): it was not
+    fused, and the volume is as it was."""
+
+
+# frames in a row that do not fit with the fused volume (VolumeLimitError) before it starts again from the next one:
+# one wrong pose is left out, but a first pose that was wrong, or a camera that walked past the brick's size, does not
+# keep every later frame out
+RESTART_AFTER = 3
 
 
 @dataclass
@@ -73,13 +85,20 @@ class TSDFVolume:
         self.cfg = cfg or FusionConfig()
         self.device = str(wp.get_device(device))  # Warp device string, e.g. "cpu" or "cuda:0"
         self._o3d = o3d
-        self.o3d_device = open3d_device(device)
-        c = o3d.core
-        self.vbg = o3d.t.geometry.VoxelBlockGrid(
+        self.o3d_device = open3d_device(self.device)
+        self.frames_integrated = 0
+        self.rejected_in_row = 0   # frames refused in a row for the brick's size (RESTART_AFTER)
+        self.restarts = 0          # times the volume started again
+        self._start()
+
+    def _start(self) -> None:
+        """An empty volume: a new VoxelBlockGrid, no brick yet."""
+        c = self._o3d.core
+        self.vbg = self._o3d.t.geometry.VoxelBlockGrid(
             ("tsdf", "weight"), (c.float32, c.float32), ((1,), (1,)),
             self.cfg.voxel_size, self.cfg.block_resolution, self.cfg.block_count, self.o3d_device)
-        self.frames_integrated = 0
         self._pending: list = []   # block-coordinate tensors touched since the last export
+        self._pending_bounds = None  # their (lo, hi) block coordinates, inclusive
         self._sdf = None           # wp.array3d brick
         self._occupied = None      # uint8 per block: any voxel below +trunc
         self._empty = None         # uint8 per block: Chebyshev distance to the nearest occupied block
@@ -116,8 +135,26 @@ class TSDFVolume:
         depth_img = o3d.t.geometry.Image(self._tensor(depth))
         depth_max, trunc_voxels = float(cfg.depth_max), float(cfg.trunc_voxels)
         blocks = self.vbg.compute_unique_block_coordinates(depth_img, K, extrinsic, 1.0, depth_max, trunc_voxels)
+        if blocks.shape[0] == 0:
+            return
+        own = tuple(b.cpu().numpy().astype(np.int64) for b in (blocks.min(dim=[0]), blocks.max(dim=[0])))
+        lo, hi = own
+        if self._pending_bounds is not None:
+            lo, hi = np.minimum(lo, self._pending_bounds[0]), np.maximum(hi, self._pending_bounds[1])
+        n_vox = self._brick(lo, hi)[2]
+        if n_vox > self.cfg.max_dense_voxels:
+            self.rejected_in_row += 1
+            alone = math.prod(int(d) * self.cfg.block_resolution for d in own[1] - own[0] + 1)
+            if self.rejected_in_row < RESTART_AFTER or alone > self.cfg.max_dense_voxels:
+                raise VolumeLimitError(f"{self._limit_message(n_vox, hi - lo + 1)}; the frame (camera at "
+                                       f"{np.round(np.asarray(pose_c2w)[:3, 3], 3).tolist()} m) was not fused")
+            self._start()   # RESTART_AFTER frames in a row did not fit: this one starts the volume again
+            self.restarts += 1
+            lo, hi = own
+        self.rejected_in_row = 0
         self.vbg.integrate(blocks, depth_img, K_nearest, extrinsic, 1.0, depth_max, trunc_voxels)
         self._pending.append(blocks)
+        self._pending_bounds = (lo, hi)
         self.frames_integrated += 1
 
     def active_block_coords(self):
@@ -162,30 +199,43 @@ class TSDFVolume:
         a = wp.from_dlpack(tensor.to_dlpack())
         return a if str(a.device) == str(wp.get_device(self.device)) else a.to(self.device)
 
-    def _ensure_covers(self, lo: np.ndarray, hi: np.ndarray) -> None:
-        """Allocate or grow the brick so that it covers blocks [lo, hi] (inclusive): a new brick with
-        grid_margin_blocks round them; a grown one extends only the sides that fall short, each by the
-        blocks it lacks plus max(grid_margin_blocks, grid_growth * its extent)."""
+    def _brick(self, lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
+        """(first block, last block, voxels) of the brick that covers blocks [lo, hi] (inclusive): a new brick with
+        grid_margin_blocks round them; a grown one extends only the sides that fall short, each by the blocks it
+        lacks plus max(grid_margin_blocks, grid_growth * its extent); without margin or slack where they would pass
+        max_dense_voxels."""
         R, m = self.cfg.block_resolution, self.cfg.grid_margin_blocks
         if self._sdf is not None:
             cur_lo, cur_hi = self._lo_block, self._lo_block + self._dims_blocks - 1
-            if np.all(lo >= cur_lo) and np.all(hi <= cur_hi):
-                return
             slack = np.maximum(m, np.ceil(self.cfg.grid_growth * self._dims_blocks)).astype(np.int64)
             lo, hi = np.minimum(lo, cur_lo), np.maximum(hi, cur_hi)
             new_lo, new_hi = np.where(lo < cur_lo, lo - slack, lo), np.where(hi > cur_hi, hi + slack, hi)
         else:
             new_lo, new_hi = lo - m, hi + m
-        if np.prod((new_hi - new_lo + 1) * R) > self.cfg.max_dense_voxels:
-            new_lo, new_hi = lo, hi  # drop the margin and slack before giving up
+        voxels = math.prod(int(d) * R for d in new_hi - new_lo + 1)   # Python ints: no overflow for absurd poses
+        if voxels > self.cfg.max_dense_voxels:
+            new_lo, new_hi = lo, hi
+            voxels = math.prod(int(d) * R for d in new_hi - new_lo + 1)
+        return new_lo, new_hi, voxels
+
+    def _limit_message(self, n_vox: int, dims_blocks: np.ndarray) -> str:
+        size_m = dims_blocks * self.cfg.block_resolution * self.cfg.voxel_size
+        return (f"dense SDF brick would need {n_vox} voxels ({size_m[0]:.4g} x {size_m[1]:.4g} x {size_m[2]:.4g} m at "
+                f"{self.cfg.voxel_size} m), more than FusionConfig.max_dense_voxels = {self.cfg.max_dense_voxels}: "
+                "a wrong pose, or a scene that needs larger voxels (reconstruction.voxel_size) or a smaller "
+                "reconstruction.depth_max")
+
+    def _ensure_covers(self, lo: np.ndarray, hi: np.ndarray) -> None:
+        """Allocate or grow the brick so that it covers blocks [lo, hi] (inclusive), as _brick sizes it."""
+        R = self.cfg.block_resolution
+        if self._sdf is not None:
+            cur_lo, cur_hi = self._lo_block, self._lo_block + self._dims_blocks - 1
+            if np.all(lo >= cur_lo) and np.all(hi <= cur_hi):
+                return
+        new_lo, new_hi, n_vox = self._brick(lo, hi)
         dims = (new_hi - new_lo + 1).astype(np.int64)
-        n_vox = int(np.prod(dims * R))
         if n_vox > self.cfg.max_dense_voxels:
-            size_m = dims * R * self.cfg.voxel_size
-            raise RuntimeError(
-                f"dense SDF brick would need {n_vox} voxels ({size_m[0]:.2f} x {size_m[1]:.2f} x {size_m[2]:.2f} m "
-                f"at {self.cfg.voxel_size} m), more than FusionConfig.max_dense_voxels = {self.cfg.max_dense_voxels}; "
-                "raise the limit, use larger voxels or a smaller depth_max")
+            raise RuntimeError(self._limit_message(n_vox, dims))
         sdf = wp.full(tuple(int(d * R) for d in dims), self.cfg.trunc, dtype=SDF_DTYPE, device=self.device)
         occupied = wp.zeros(tuple(int(d) for d in dims), dtype=wp.uint8, device=self.device)
         if self._sdf is not None:
@@ -204,8 +254,7 @@ class TSDFVolume:
         if self._pending:
             o3c = self._o3d.core
             blocks = self._pending[0] if len(self._pending) == 1 else o3c.concatenate(self._pending, 0)
-            self._ensure_covers(blocks.min(dim=[0]).cpu().numpy().astype(np.int64),
-                                blocks.max(dim=[0]).cpu().numpy().astype(np.int64))
+            self._ensure_covers(*self._pending_bounds)
             bufs, found = self.vbg.hashmap().find(blocks)
             cap = self.vbg.hashmap().capacity()
             tsdf = self.vbg.attribute("tsdf").reshape((cap, R ** 3))
@@ -215,7 +264,7 @@ class TSDFVolume:
                            cfg.min_weight, self._sdf, self._occupied)
             update_empty_distance(self._occupied, self._empty)
             wp.synchronize_device(self.device)  # the DLPack views of Open3D's buffers end here
-            self._pending = []
+            self._pending, self._pending_bounds = [], None
         return DenseGrid(sdf=self._sdf, origin=(self._lo_block * R).astype(np.float64) * cfg.voxel_size,
                          voxel_size=float(cfg.voxel_size), trunc=float(cfg.trunc),
                          shape=tuple(int(s) for s in self._sdf.shape), empty=self._empty, cell=R)

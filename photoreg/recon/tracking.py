@@ -27,6 +27,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from ..config import ReconstructionConfig
+from ..device import open3d_message
 from ..types import Frame, Intrinsics
 
 # Pixels across the tracked images. TUM and ICL-NUIM (benchmarks/tracking.md): 160 (every 4th pixel) tracked as well
@@ -223,7 +224,7 @@ class Tracker:
             res = od.rgbd_odometry_multi_scale(src, self.model, self.K, self.o3d.core.Tensor(start), 1.0,
                                                self.recon.depth_max, self.criteria, od.Method.PointToPlane)
         except RuntimeError as e:  # Open3D raises when too few correspondences
-            return start, 0.0, f"odometry failed: {e}"
+            return start, 0.0, f"odometry failed: {open3d_message(e)}"
         T = res.transformation.cpu().numpy()
         fitness, rmse = float(res.fitness), float(res.inlier_rmse)
         min_fit, max_rmse, max_t, max_r = self.limits

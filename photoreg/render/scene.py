@@ -25,6 +25,8 @@ wp = init_warp()
 GRID_RESOLUTION = 64   # voxels along the scene's largest extent (capped at the TSDF voxel size)
 GRID_CELL = 8          # voxels per empty-skipping cell
 GRID_TRUNC_VOXELS = 4.0
+GRID_MAX_VOXELS = 1 << 24   # the objects' SDF grid at most (64 MB of float32): coarser voxels for objects far apart
+MAX_OBJECT_EXTENT = 50.0    # metres an object may span as placed: more is a unit or `scale` mistake
 
 
 @dataclass
@@ -149,6 +151,10 @@ def load_object(obj: ObjectConfig) -> VirtualObject:
     if not np.all(np.isfinite(local)):
         raise ValueError(f"{path}: mesh has non-finite vertices")
     v = local @ T[:3, :3].T + T[:3, 3]
+    extent = float(np.ptp(v, axis=0).max())
+    if extent > MAX_OBJECT_EXTENT:
+        raise ValueError(f"{path}: the object spans {extent:.4g} m as placed (scale {obj.scale}), more than "
+                         f"{MAX_OBJECT_EXTENT:g} m: check the mesh's units and the object's scale")
     base = np.cumsum([0] + [len(m.vertices) for m in parts])
     faces = np.concatenate([np.asarray(m.faces, np.int64) + b for m, b in zip(parts, base)])
     normals = None
@@ -240,21 +246,26 @@ def load_scene(objects: list[ObjectConfig]) -> VirtualScene:
 
 def voxel_grid(scene: VirtualScene, max_voxel: float, device: str) -> DenseGrid:
     """Signed-distance DenseGrid of the whole virtual scene (Open3D RaycastingScene, negative inside),
-    voxel = min(largest extent / GRID_RESOLUTION, max_voxel); built once per run."""
+    voxel = min(largest extent / GRID_RESOLUTION, max_voxel), coarser where the grid would hold more than
+    GRID_MAX_VOXELS (large objects, or objects far apart); built once per run."""
     import open3d as o3d
 
     verts, faces, _ = scene.triangles()
     lo, hi = scene.bounds
     voxel = float(min(max((hi - lo).max() / GRID_RESOLUTION, 1e-4), max_voxel))
-    trunc = GRID_TRUNC_VOXELS * voxel
-    pad = trunc + 2 * voxel
-    origin = lo - pad
-    dims = np.ceil((hi + pad - origin) / voxel).astype(np.int64) + 1
-    dims = (-(-dims // GRID_CELL) * GRID_CELL).astype(np.int64)
+    while True:
+        trunc = GRID_TRUNC_VOXELS * voxel
+        pad = trunc + 2 * voxel
+        origin = lo - pad
+        dims = np.ceil((hi + pad - origin) / voxel).astype(np.int64) + 1
+        dims = (-(-dims // GRID_CELL) * GRID_CELL).astype(np.int64)
+        if np.prod(dims.astype(float)) <= GRID_MAX_VOXELS:
+            break
+        voxel *= 1.05 * (np.prod(dims.astype(float)) / GRID_MAX_VOXELS) ** (1 / 3)
     rs = o3d.t.geometry.RaycastingScene()
     rs.add_triangles(o3d.core.Tensor(verts.astype(np.float32)), o3d.core.Tensor(faces.astype(np.uint32)))
-    idx = np.stack(np.meshgrid(*[np.arange(d) for d in dims], indexing="ij"), -1).reshape(-1, 3)
-    pts = (origin + idx * voxel).astype(np.float32)
+    axes = [(origin[k] + np.arange(d) * voxel).astype(np.float32) for k, d in enumerate(dims)]
+    pts = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
     sdf = rs.compute_signed_distance(o3d.core.Tensor(pts)).numpy().reshape(*dims).astype(np.float32)
     return sdf_grid(sdf, origin, voxel, trunc, device)
 

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 import struct
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -253,15 +254,22 @@ def _get(obj: dict, key: str, where: str):
     return obj[key]
 
 
+MAX_INDEX = 2 ** 53   # integers a JSON number holds exactly in every client (JavaScript's safe integers)
+
+
 def _number(value, name: str) -> float:
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-        raise ProtocolError("bad_field", f"{name} must be a finite number, got {value!r:.80}")
+    try:   # an integer too large for a float (a 400-digit JSON number) is out of range like an infinity
+        finite = not isinstance(value, bool) and isinstance(value, (int, float)) and math.isfinite(value)
+    except OverflowError:
+        finite = False
+    if not finite:
+        raise ProtocolError("bad_field", f"{name} must be a finite number, got {str(value):.80}")
     return float(value)
 
 
 def _count(value, name: str) -> int:
-    if isinstance(value, bool) or not isinstance(value, int) or value < 0:
-        raise ProtocolError("bad_field", f"{name} must be a non-negative integer, got {value!r:.80}")
+    if isinstance(value, bool) or not isinstance(value, int) or not 0 <= value < MAX_INDEX:
+        raise ProtocolError("bad_field", f"{name} must be an integer in 0..2^53-1, got {str(value):.80}")
     return value
 
 
@@ -273,7 +281,7 @@ def _object(value, name: str) -> dict:
 
 def check_version(version) -> str:
     """Accept any 1.x; anything else is a `version` error."""
-    if not isinstance(version, str) or not version.partition(".")[0].isdigit():
+    if not isinstance(version, str) or not re.match(r"[0-9]{1,6}(\.|$)", version):   # ASCII digits: int() takes them
         raise ProtocolError("bad_field", f"hello.version must be a string like \"{PROTOCOL_VERSION}\", "
                                          f"got {version!r:.80}")
     if int(version.partition(".")[0]) != MAJOR:
@@ -358,6 +366,8 @@ def session_from_options(value, device: str, limits: Limits, meshes: Path | None
                                     f"hello.options.track must be true or false, got {opts['track']!r:.80}")
             s.recording.use_poses = not opts["track"]
         validate(s)
+    except ProtocolError:
+        raise
     except ValueError as e:
         raise ProtocolError("bad_field", str(e)) from None
     L, R = s.lighting, s.reconstruction

@@ -130,13 +130,13 @@ class Connection:
             await asyncio.wait({self.reader})
             ending = "shutdown" if self.reader.cancelled() else self.reader.result()
             if ending == "bye":
-                await self._wait_idle(None)
+                await self._wait_idle(None, worker)
                 await last_words(self.ws, bye_message("client said bye", **self.stats()),
                                  CloseCode.NORMAL_CLOSURE, "bye")
             elif ending == "shutdown":
                 self.counts["cancelled"] += len(self.queue)
                 self.queue.clear()
-                await self._wait_idle(self.cfg.shutdown_timeout)
+                await self._wait_idle(self.cfg.shutdown_timeout, worker)
                 await last_words(self.ws, bye_message(self.stop_reason, **self.stats()),
                                  CloseCode.GOING_AWAY, self.stop_reason)
             elif ending == "idle":
@@ -170,11 +170,16 @@ class Connection:
         return {"frames_received": c["received"], "frames_processed": c["processed"], "dropped": c["dropped"],
                 "cancelled": c["cancelled"], "errors": c["errors"]}
 
-    async def _wait_idle(self, timeout: float | None) -> None:
-        try:
-            await asyncio.wait_for(self.idle.wait(), timeout)
-        except TimeoutError:
+    async def _wait_idle(self, timeout: float | None, worker: asyncio.Task) -> None:
+        """Until nothing is in work, the timeout passes or the replies' task has ended (a bug in it must not keep the
+        connection, its client slot and a shutdown waiting for ever)."""
+        idle = asyncio.ensure_future(self.idle.wait())
+        done, _ = await asyncio.wait({idle, worker}, timeout=timeout, return_when=asyncio.FIRST_COMPLETED)
+        idle.cancel()
+        if not done:
             log.warning("%s: frame still in work after %.0f s; closing without its reply", self.peer, timeout)
+        elif idle not in done and not worker.cancelled() and worker.exception() is not None:
+            log.error("%s: the replies ended", self.peer, exc_info=worker.exception())
 
     async def _send(self, msg: dict) -> None:
         await self.ws.send(encode(msg))
@@ -240,7 +245,8 @@ class Connection:
         token = self.cfg.token
         if token is not None:
             given = header.get("token")
-            if not isinstance(given, str) or not hmac.compare_digest(given.encode(), token.encode()):
+            if not isinstance(given, str) or not hmac.compare_digest(given.encode(errors="surrogatepass"),
+                                                                     token.encode()):
                 log.warning("%s: refused: missing or wrong token", self.peer)
                 return "unauthorized"
         hello = parse_hello(header, self.server.device, self.cfg.limits,
@@ -254,12 +260,17 @@ class Connection:
             host, self.host = self.host, None
             await asyncio.to_thread(host.close)
             raise ProtocolError("pipeline", f"could not start the pipeline: {e}") from None
+        try:   # the session is live once the client has its ready
+            await self._send(ready_message(hello, self.server.device, self.cfg.queue, self.cfg.limits))
+        except Exception:
+            host, self.host = self.host, None
+            await asyncio.to_thread(host.close)
+            raise
         self.host.ready = True
         self.intrinsics, self.composite = hello.intrinsics, hello.composite
         k = hello.intrinsics
         log.info("%s: session started (%dx%d, bands %d, rays %d, stride %d)", self.peer, k.width, k.height,
                  hello.session.lighting.bands, hello.session.lighting.rays, hello.session.lighting.stride)
-        await self._send(ready_message(hello, self.server.device, self.cfg.queue, self.cfg.limits))
         return None
 
     async def _frame(self, header: dict, payload: memoryview, received: float) -> None:
@@ -351,9 +362,18 @@ class Connection:
                     self.running.popleft()
                 self._feed()   # the next frame goes in before this one's reply
                 self.counts["processed"] += 1
-                await self._send(lighting_message(record, self.counts["dropped"],
-                                                  (time.perf_counter() - item.received) * 1000.0,
-                                                  (handed - item.received) * 1000.0))
+                try:
+                    await self._send(lighting_message(record, self.counts["dropped"],
+                                                      (time.perf_counter() - item.received) * 1000.0,
+                                                      (handed - item.received) * 1000.0))
+                except ConnectionClosed:
+                    raise
+                except Exception as e:   # a reply that cannot be made must not end the replies to the next frames
+                    log.error("%s: frame %d: no reply", self.peer, index, exc_info=e)
+                    self.counts["errors"] += 1
+                    await self._send(error_message("internal", f"frame {index}: the reply could not be made: {e}",
+                                                   index))
+                    continue
                 if patch is not None:
                     try:
                         image = await asyncio.to_thread(_encoded, patch, item.frame.color, self.composite)

@@ -92,6 +92,10 @@ class SynthConfig:
             raise ValueError(f"--size {self.width}x{self.height}: need at least 8x8 pixels")
         if not (self.overexpose > 0 and np.isfinite(self.overexpose)):
             raise ValueError(f"--overexpose {self.overexpose}: need a positive factor")
+        if not np.isfinite(self.yaw):
+            raise ValueError(f"--yaw {self.yaw}: need a finite angle in degrees")
+        if not 0 <= self.seed < 2 ** 32:
+            raise ValueError(f"--seed {self.seed}: need an integer in 0..2^32-1")
         if not 0 <= self.shutter <= 1.0 / FPS:
             raise ValueError(f"--shutter {self.shutter}: seconds in 0..{1.0 / FPS:.4f} (one frame interval at {FPS:g} "
                              "frames/s)")
