@@ -216,6 +216,8 @@ def run_session(s: Session, quiet: bool = False, on_frame: Callable[[int, int], 
         "read_wait_s": round(reader.waited_s, 3), "write_wait_s": round(files.waited_s + frames.waited_s, 3),
         "weak_frames": [r.index for r in results if r.diagnostics.weak],
         "objects": len(s.objects), "shadows": s.render.shadows if s.objects else None,
+        # frames composited (a frame without a pose, recorded or tracked, has no composite and no video frame)
+        "composites": sum(r.composite is not None for r in results) if s.objects else None,
         "video": None if video is None else {"file": video.path.name, "frames": video.frames, "fps": round(fps, 3)},
         "timings_ms_mean": {k: round(float(np.mean([r.timings_ms.get(k, 0.0) for r in results])), 3) for k in stages},
         "settings": {"lighting": vars(s.lighting), "reconstruction": vars(s.reconstruction),
@@ -247,6 +249,9 @@ def print_summary(summary: dict, out: str) -> None:
     stages = "  ".join(f"{k} {v:.1f}" for k, v in t.items() if k != "total")
     print(f"{summary['frames_processed']} frames on {summary['device']} at {summary['frames_per_s']} frames/s; "
           f"{len(summary['weak_frames'])} weak, {len(summary['frames_skipped'])} skipped")
+    if summary.get("objects") and summary["composites"] < summary["frames_processed"]:
+        print(f"{summary['frames_processed'] - summary['composites']} frame(s) without a pose have no composite "
+              "(lighting.jsonl's notes say why)")
     print(f"mean ms per stage: {stages}  (total {t.get('total', 0):.1f})")
     print(f"outputs in {out}: lighting.jsonl, summary.json, envmap/, sphere/"
           + (", composite/, composite_linear/, lightmap/" if summary.get("objects") else "")

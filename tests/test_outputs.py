@@ -187,6 +187,26 @@ def test_run_skips_an_unreadable_frame_and_names_it(tmp_path, capsys):
     assert not (out / "lighting.jsonl.partial").exists()
 
 
+def test_a_frame_without_a_pose_is_counted_as_no_composite(tmp_path, capsys):
+    """The demo with frame 0's recorded pose missing: 3 frames processed, 2 composited (summary.json 'composites'),
+    and `photoreg run` says so instead of leaving the video a frame short without a word."""
+    import shutil
+
+    from photoreg.cli import main
+
+    rec = tmp_path / "demo"
+    shutil.copytree(REPO / "data" / "demo", rec)
+    gt = rec / "groundtruth.txt"
+    gt.write_text("".join(line for line in gt.read_text().splitlines(True) if not line.startswith("0.000000")))
+    session = rec / "session.toml"
+    out = tmp_path / "out"
+    assert main(["run", str(session), "--out", str(out), "--frames", "0:3", "--rays", "8", "--stride", "8", "--bands",
+                 "2", "--device", "cpu", "--video", "--quiet"]) == 0
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["frames_processed"] == 3 and summary["composites"] == 2 and summary["video"]["frames"] == 2
+    assert "1 frame(s) without a pose have no composite" in capsys.readouterr().out
+
+
 def test_a_run_leaves_only_its_own_outputs(tmp_path, capsys):
     """A run into a folder holding an earlier run's outputs: once it finishes, the earlier run's per-frame files it
     did not write again (pictures, composites, lightmaps), its video and its tracked trajectory are gone (photoreg

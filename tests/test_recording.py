@@ -189,6 +189,24 @@ def test_info_command(tum_path, icl_path, capsys):
         assert text in out
 
 
+def test_info_warns_of_depth_in_other_units(tmp_path, capsys):
+    """Depth stored in metres as float images under a depth scale of 5000 reads 0.2 mm away: `photoreg info` says the
+    scale looks wrong (a run would find no depth in range and say only that)."""
+    write_native(tmp_path)
+    for path in (tmp_path / "depth").glob("*.png"):
+        cv2.imwrite(str(path.with_suffix(".tiff")), np.full((H, W), 1.5, np.float32))
+        path.unlink()
+    (tmp_path / "depth.txt").write_text((tmp_path / "depth.txt").read_text().replace(".png", ".tiff"))
+    assert main(["info", str(tmp_path)]) == 0
+    assert ("warning:     a median depth of 0.0003 m is no depth camera's: is the depth scale (5000 units per metre; "
+            "float images in metres need 1) right?") in capsys.readouterr().out
+    js = tmp_path / "intrinsics.json"
+    js.write_text(js.read_text().replace(f'"depth_scale": {DEPTH_SCALE}', '"depth_scale": 1'))
+    assert main(["info", str(tmp_path)]) == 0
+    out = capsys.readouterr().out
+    assert "median 1.500" in out and "warning" not in out
+
+
 def test_info_command_error(tmp_path, capsys):
     assert main(["info", str(tmp_path)]) == 2
     assert "not a recognised recording" in capsys.readouterr().err

@@ -213,6 +213,9 @@ class ReadAhead(Ahead[int, Frame]):
             yield frame
 
 
+PLAUSIBLE_DEPTH_M = (0.1, 20.0)   # median depths `photoreg info` takes for a depth camera's (else: wrong units?)
+
+
 def depth_summary(recording: Recording, samples: int = 5) -> tuple[np.ndarray | None, float, list[tuple[int, str]]]:
     """Valid depth values (metres) and the valid fraction over a few evenly spaced frames, plus their errors."""
     indices = np.unique(np.linspace(0, len(recording) - 1, min(samples, len(recording))).round().astype(int))
@@ -255,8 +258,12 @@ def info_command(args: argparse.Namespace) -> int:
         print(f"time span:   {span:.3f} s ({rec.timestamps[0]:.6f} .. {rec.timestamps[-1]:.6f}){rate}")
         valid, fraction, errors = depth_summary(rec)
         if valid is not None and valid.size:
-            print(f"depth:       min {valid.min():.3f} / median {np.median(valid):.3f} / max {valid.max():.3f} m, "
+            median = float(np.median(valid))
+            print(f"depth:       min {valid.min():.3f} / median {median:.3f} / max {valid.max():.3f} m, "
                   f"{100 * fraction:.1f}% valid (sampled frames)")
+            if not PLAUSIBLE_DEPTH_M[0] <= median <= PLAUSIBLE_DEPTH_M[1]:
+                print(f"warning:     a median depth of {median:.4g} m is no depth camera's: is the depth scale "
+                      f"({rec.intrinsics.depth_scale:g} units per metre; float images in metres need 1) right?")
         elif valid is not None:
             print("depth:       no valid depth in the sampled frames")
         for i, msg in errors:
