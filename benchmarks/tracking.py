@@ -4,7 +4,7 @@ frames skipped: a live client whose frames the server drops ("latest wins"), or 
 
 usage: python benchmarks/tracking.py [--steps 1,2,4,6,8] [--recordings tum_fr1_rpy,...] [--device cpu|cuda]
                                     [--md benchmarks/tracking.md]
-(needs $PHOTOREG_DATA; each run is `photoreg run REC --no-poses --frames 0:N:S --rays 8 --stride 8` over the
+(needs $PHOTOREG_DATA; each run is `photoreg run REC --no-poses --frames 0:N:S --rays 8 --bands 3 --stride 8` over the
 recording's N frames: the lighting does not touch the tracking, which aligns each frame's depth with the fused
 volume, so it is kept cheap)
 
@@ -36,7 +36,7 @@ def run(recording: Path, step: int, device: str) -> dict:
     """summary.json's tracking block (with wall_s) of one --no-poses run over every step-th frame."""
     with tempfile.TemporaryDirectory() as out:
         t0 = time.perf_counter()
-        rc = photoreg(["run", str(recording), "--no-poses", "--frames", f"0::{step}", "--rays", "8",
+        rc = photoreg(["run", str(recording), "--no-poses", "--frames", f"0::{step}", "--rays", "8", "--bands", "3",
                        "--stride", "8", "--device", device, "--out", out, "--quiet"])
         if rc != 0:
             raise SystemExit(f"photoreg run {recording} --frames 0::{step} exited with {rc}")

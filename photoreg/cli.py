@@ -154,11 +154,12 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("recording", help="recording folder, or a SESSION.toml: its objects are inserted and the "
                                      "render stage (R_TRV, G-buffer, composite) is timed too")
     b.add_argument("--device", choices=["auto", "cpu", "cuda"], default=None)
-    b.add_argument("--frames", help="frames to use (default 0:12)")
+    b.add_argument("--frames", help="frames to use (default: the session's, else 0:12)")
     b.add_argument("--warmup", type=int, default=2, help="leading frames left out of the figures")
-    b.add_argument("--stride", type=int, default=4)
-    b.add_argument("--rays", type=int, default=64)
-    b.add_argument("--bands", type=int, default=3)
+    b.add_argument("--stride", type=int, help="lighting stride (default: the session's, else 4); every setting not "
+                                              "given is the session's")
+    b.add_argument("--rays", type=int, help="visibility rays (default: the session's, else 64)")
+    b.add_argument("--bands", type=int, help="SH bands (default: the session's, else 3)")
     b.add_argument("--render-stride", type=int, help="sessions with objects: their shadows sampled every n-th pixel "
                                                      "(render.stride; default the session's)")
     b.add_argument("--gbuffer", choices=GBUFFER_BACKENDS, help="sessions with objects: their G-buffer's backend "
@@ -167,7 +168,7 @@ def build_parser() -> argparse.ArgumentParser:
                                                  "motion-blurred (render.shutter; default the session's)")
     b.add_argument("--voxel-size", type=float)
     b.add_argument("--ray-length", type=float)
-    b.add_argument("--every", type=int, default=1, help="estimate the lighting on every n-th frame (lighting.every)")
+    b.add_argument("--every", type=int, help="estimate the lighting on every n-th frame (lighting.every)")
     b.add_argument("--async", dest="asynchronous", action="store_true",
                    help="estimate the lighting in a worker thread beside the frames (lighting.asynchronous)")
     b.add_argument("--no-solve-process", action="store_true",

@@ -339,8 +339,12 @@ def validate(s: Session) -> None:
             v = getattr(getattr(s, section), f.name)
             if isinstance(v, float) and not math.isfinite(v):
                 raise ValueError(f"{where}: {section}.{f.name} must be a finite number, got {v}")
+    fitted = L.bands if L.select == "fixed" else L.max_bands   # the most bands a solve may fit
     checks = [(1 <= L.bands <= 8, "lighting.bands must be in 1..8"),
               (L.rays >= 1, "lighting.rays must be >= 1"),
+              (2 * L.rays >= fitted ** 2,   # every transfer vector is a sum over the 2 x rays directions of one set
+               f"lighting.rays must be >= {-(-fitted ** 2 // 2)} for {fitted} bands ({fitted ** 2} coefficients; the "
+               f"transfer vectors span at most 2 x rays directions): more rays or fewer bands"),
               (1 <= L.stride <= MAX_STRIDE, f"lighting.stride must be in 1..{MAX_STRIDE}"),
               (L.sample_box == 0 or (L.sample_box % 2 == 1 and 1 <= L.sample_box <= 15),
                "lighting.sample_box must be 0 (stride | 1) or odd in 1..15"),

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import dataclasses
 import multiprocessing
+import sys
 import time
 from concurrent import futures
 from contextlib import contextmanager
@@ -110,6 +111,9 @@ class Pipeline:
         self._solver = _solve_process() if lc.asynchronous and lc.solve_process else None
         # Extra terms (the bounce, the dominant light) only with fixed bands: order selection compares SH models.
         fixed = self.solver_cfg.select == "fixed"
+        if not fixed and (lc.sun or lc.bounce):
+            print(f"photoreg: lighting.select = {lc.select!r} compares SH models alone: the traced light "
+                  "(lighting.sun) and the bounce term (lighting.bounce) are off", file=sys.stderr)
         self.bounce = lc.bounce and fixed
         self.observed_bounce = self.bounce and lc.bounce_observed
         # the fused surface luminance: the exposure gain's reference and what blocked rays see (observed bounce)
@@ -346,7 +350,8 @@ class Pipeline:
                                       "views' samples")
             if self.filter is not None:
                 filtered, diag.change_detected = self.filter.update(sol, new_view)
-                F = Lighting(filtered)
+                # the filter weighs the channels apart: a white-mode light is one colour again
+                F = Lighting(sh.one_chroma(filtered) if lc.mode == "white" else filtered)
                 e = self.filter.irradiance(None if sun is None else sol.terms["sun"], diag.change_detected,
                                            None if sun is None else sun.direction)
                 if e is not None:   # the renderers draw the light with the filtered irradiance

@@ -119,16 +119,17 @@ def write_composite(out: Path, r: FrameResult, lightmap: np.ndarray) -> None:
     write_exr(out / "lightmap" / f"{name}.exr", lightmap)
 
 
-def remove_earlier(out: Path, kept: dict[str, set[str]], files: tuple[str, ...]) -> list[Path]:
-    """Remove what an earlier run left in `out` and this finished run did not write: in each per-frame folder
-    (PICTURE_DIRS, COMPOSITE_DIRS) the NNNNNN.ext files not among kept[folder] (their stems), and the named
-    `files` (composite.mp4, trajectory.txt where this run wrote none). Other files are never touched."""
+def remove_earlier(out: Path, kept: dict[str, tuple[tuple[str, ...], set[str]]],
+                   files: tuple[str, ...]) -> list[Path]:
+    """Remove what an earlier run left in `out` and this finished run did not write: in each per-frame folder of
+    `kept` (folder -> (its files' extensions, the names this run wrote)) the NNNNNN.ext files not written, and the
+    named `files` (composite.mp4, trajectory.txt where this run wrote none). Other files are never touched."""
     removed = []
-    for folder, exts in {**PICTURE_DIRS, **COMPOSITE_DIRS}.items():
+    for folder, (exts, names) in kept.items():
         d = out / folder
         if d.is_dir():
             removed += [p for p in d.iterdir() if p.suffix in exts and len(p.stem) == 6 and p.stem.isdigit()
-                        and p.stem not in kept.get(folder, set())]
+                        and p.name not in names]
     removed += [out / name for name in files if (out / name).is_file()]
     for p in removed:
         p.unlink(missing_ok=True)
@@ -235,7 +236,8 @@ def run_session(s: Session, quiet: bool = False, on_frame: Callable[[int, int], 
     k = s.output.pictures_every
     pictures = {f"{r.index:06d}" for n, r in enumerate(results) if k and n % k == 0}
     composites = {f"{r.index:06d}" for r in results if r.composite is not None}
-    kept = {**{d: pictures for d in PICTURE_DIRS}, **{d: composites for d in COMPOSITE_DIRS}}
+    kept = {d: (exts, {stem + e for stem in stems for e in exts})
+            for dirs, stems in ((PICTURE_DIRS, pictures), (COMPOSITE_DIRS, composites)) for d, exts in dirs.items()}
     stale = [name for name, written in (("composite.mp4", video is not None), ("trajectory.txt", "tracking" in summary))
              if not written]
     removed = remove_earlier(out, kept, tuple(stale))

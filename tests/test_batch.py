@@ -3,6 +3,7 @@ validation before any work, a failing session beside two good ones (local pool a
 report, --resume doing no work, an edited session file running again."""
 from __future__ import annotations
 
+import importlib.util
 import json
 import math
 import shutil
@@ -12,6 +13,7 @@ from pathlib import Path
 
 import pytest
 from scenes import write_recording
+from servecli import free_port
 
 from photoreg.cli import main
 from photoreg.types import Intrinsics
@@ -149,9 +151,15 @@ def test_option_errors(tmp_path, recording, capsys, monkeypatch):
     s = str(write_session(tmp_path, "a", recording))
     assert main(["batch", s, "--workers", "0"]) == 2
     assert main(["batch", s, "--ray-address", "auto"]) == 2
+    err = capsys.readouterr().err
+    if importlib.util.find_spec("ray") is not None:   # nothing at the address: refused at once, not after minutes
+        port = free_port()
+        assert main(["batch", s, "--executor", "ray", "--ray-address", f"127.0.0.1:{port}", "--out",
+                     str(tmp_path / "report")]) == 2
+        assert f"--ray-address 127.0.0.1:{port}: nothing answers there" in capsys.readouterr().err
     monkeypatch.setitem(sys.modules, "ray", None)   # as if Ray were not installed
     assert main(["batch", s, "--executor", "ray", "--out", str(tmp_path / "report")]) == 2
-    err = capsys.readouterr().err
+    err += capsys.readouterr().err
     assert "--workers must be >= 1" in err and "--ray-address needs --executor ray" in err
     assert "pip install 'photoreg[ray]'" in err and not (tmp_path / "out").exists()
 

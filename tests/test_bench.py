@@ -126,6 +126,16 @@ def test_sweep_option_errors(tmp_path, capsys):
     assert main(["bench", "sweep", "--recordings", str(rec), "--frames", "2", "--warmup", "2", "--device", "cpu",
                  "--csv", str(tmp_path / "a.csv"), "--plot", str(tmp_path / "a.png")]) == 2
     assert "warm-up" in capsys.readouterr().err
+    # the outputs and the table the rows merge into are checked before any work (a sweep may take hours)
+    sweep = ["bench", "sweep", "--recordings", str(rec), "--frames", "2", "--device", "cpu"]
+    (tmp_path / "folder").mkdir()
+    assert main(sweep + ["--csv", str(tmp_path / "folder"), "--plot", str(tmp_path / "a.png")]) == 2
+    assert f"{tmp_path / 'folder'} (--csv) is a folder, not a file" in capsys.readouterr().err
+    (tmp_path / "cut.csv").write_text("device,device_name,threads,size,voxel_size,stride,rays,bands\ncpu,x,1,8x6,")
+    assert main(sweep + ["--csv", str(tmp_path / "cut.csv"), "--plot", str(tmp_path / "a.png")]) == 2
+    assert f"{tmp_path / 'cut.csv'}:2: not a whole row of a speed/error table" in capsys.readouterr().err
+    assert main(["bench", "speed", str(rec), "--json", str(tmp_path / "cut.csv" / "x.json")]) == 2
+    assert f"(--json): {tmp_path / 'cut.csv'} is a file, not a folder" in capsys.readouterr().err
 
 
 # --- row-split CPU launches ------------------------------------------------------------------------
@@ -206,3 +216,20 @@ def test_bench_speed_times_the_render_stage_of_a_session(tmp_path, capsys):
         # the BLAS threads this process runs with (photoreg set them at import), in the JSON and the printed line
         assert res["blas_threads"] == os.environ["OPENBLAS_NUM_THREADS"]
         assert f"BLAS threads {res['blas_threads']})" in capsys.readouterr().out
+
+
+def test_bench_speed_keeps_the_session_s_settings_but_the_options_given(tmp_path):
+    """A session's own lighting settings and frames are what `photoreg bench speed` times, each replaced only by an
+    option given (before, the options' defaults, stride 4 / 64 rays / 3 bands, every frame, the traced light, frames
+    0:12, replaced them silently)."""
+    demo = Path(__file__).resolve().parents[1] / "data" / "demo"
+    session = tmp_path / "s.toml"
+    session.write_text(f'frames = "0:3"\ndevice = "cpu"\n[recording]\npath = "{demo}"\n[lighting]\nstride = 8\n'
+                       'rays = 16\nbands = 2\nevery = 2\nsun = false\n')
+    out = tmp_path / "figures.json"
+    for extra, expected in (([], (8, 16, 2, 2, False)), (["--rays", "32", "--bands", "3"], (8, 32, 3, 2, False))):
+        assert main(["bench", "speed", str(session), "--warmup", "1", "--json", str(out), *extra]) == 0
+        res = json.loads(out.read_text())
+        assert (res["stride"], res["rays"], res["bands"], res["every"], res["sun"]) == expected
+        assert res["frames_timed"] == 2 and res["device"] == "cpu"
+

@@ -11,12 +11,13 @@ from photoreg.cli import main
 from photoreg.render.registry import RENDERERS
 
 
-def test_bench_renderers_tiny(tmp_path):
+def test_bench_renderers_tiny(tmp_path, capsys):
     pytest.importorskip("mitsuba")
     res = tmp_path / "results"
-    rc = main(["bench", "renderers", "--scenes", "tabletop", "--size", "64x48", "--frames", "3", "--spp", "4",
-               "--device", "cpu", "--synth-dir", str(tmp_path / "scenes"), "--results-dir", str(res),
-               "--md", str(tmp_path / "r.md"), "--plot", str(tmp_path / "r.png")])
+    args = ["bench", "renderers", "--size", "64x48", "--frames", "3", "--spp", "4", "--device", "cpu", "--synth-dir",
+            str(tmp_path / "scenes"), "--results-dir", str(res), "--md", str(tmp_path / "r.md"), "--plot",
+            str(tmp_path / "r.png")]
+    rc = main(args + ["--scenes", "tabletop"])
     assert rc == 0
     run = json.loads((res / "renderers_cpu_4spp.json").read_text())
     names = {r["renderer"] for r in run["rows"]}
@@ -38,6 +39,21 @@ def test_bench_renderers_tiny(tmp_path):
     assert f"{run['device_name']} (cpu), ground truth at 4 spp" in md
     assert all(f"| tabletop | {n} |" in md for n in RENDERERS)
     assert (tmp_path / "r.png").stat().st_size > 1000
+
+    # another scene joins the file, the tabletop's rows kept (before: the file held the last run's scenes alone)
+    assert main(args + ["--scenes", " plane", "--renderers", "none"]) == 0
+    rows = json.loads((res / "renderers_cpu_4spp.json").read_text())["rows"]
+    assert [r for r in rows if r["scene"] == "tabletop"] == run["rows"] and any(r["scene"] == "plane" for r in rows)
+    # refused before any work: a scene kind that does not exist, a run of another size into the file, a file that
+    # is not a result
+    capsys.readouterr()
+    assert main(args + ["--scenes", "tabletop,bogus"]) == 2
+    assert "--scenes: unknown scene kind(s) 'bogus'" in capsys.readouterr().err
+    assert main([*args[:3], "32x24", *args[4:], "--scenes", "plane"]) == 2
+    assert "holds a 64x48 run of 3 frames, this one is 32x24 of 3" in capsys.readouterr().err
+    (res / "renderers_old_1spp.json").write_text("{")
+    assert main(args + ["--scenes", "plane"]) == 2
+    assert f"{res / 'renderers_old_1spp.json'}: not a `photoreg bench renderers` result" in capsys.readouterr().err
 
 
 def test_bench_renderers_inserted_mesh(tmp_path):

@@ -127,7 +127,8 @@ def test_network_shadow_follows_voxel_on_held_out_scene():
 def test_renderer_layers(tmp_path):
     """A 128x96 view (lighting stride 2: 120 px focal at the buffers, inside the training range) of the cube
     on the floor from 1 m above: finite layers, and under a sun 30 degrees off zenith the floor beside the
-    cube's -x face is darker than beside its +x face; with a band-0 lighting nothing changes."""
+    cube's -x face is darker than beside its +x face, and the floor the shadow map holds no blocker over is left as
+    it is (the network's visibility strays below 1 there); with a band-0 lighting nothing changes."""
     intr = Intrinsics(128, 96, 240.0, 240.0, 63.5, 47.5)
     scene = _cube_scene(tmp_path)
     floor, virt = _floor_grid(), voxel_grid(scene, 0.02, "cpu")
@@ -151,5 +152,6 @@ def test_renderer_layers(tmp_path):
         if shadowed:
             assert layers.ratio[rows, shadow_cols].mean() < layers.ratio[rows, lit_cols].mean() - 0.1
             assert (layers.colour[gb.coverage == 1] > 0).all()
+            assert np.all(layers.ratio[:, 96:] == 1.0) and np.all(layers.ratio[:8] == 1.0)   # nothing blocks there
         else:
             assert np.all(layers.ratio == 1.0) and any("no directional light" in n for n in layers.notes)

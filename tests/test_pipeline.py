@@ -15,6 +15,7 @@ import photoreg.pipeline as pipeline_module
 from photoreg.cli import main
 from photoreg.config import LightingConfig, Session, load_session, validate
 from photoreg.io.images import linear_to_srgb, srgb_to_linear
+from photoreg.lighting.sh import LUMINANCE
 from photoreg.io.recording import iter_frames, open_recording
 from photoreg.preprocess import prepare, strided_box
 from photoreg.runner import run_session
@@ -195,6 +196,33 @@ def test_render_stride_is_the_shadows_own(tmp_path, monkeypatch):
         validate(s)
 
 
+def test_white_mode_stays_one_colour_through_the_filter():
+    """lighting.mode = "white": one colour times a luminance SH in every frame, the temporal filter's too (it weighs
+    the channels apart: before, the channels' ratios spread by up to 0.96 across the coefficients from frame 1 on)."""
+    s = load_session(REPO / "data" / "demo" / "session.toml")
+    s.objects, s.device, s.lighting.mode, s.lighting.rays, s.lighting.stride = [], "cpu", "white", 16, 8
+    rec = open_recording(s.recording.path)
+    pipe = pipeline_module.Pipeline(s, rec.intrinsics)
+    for frame in iter_frames(rec, range(4)):
+        F = pipe.process(frame).lighting.sh
+        lum = LUMINANCE @ F
+        big = np.abs(lum) > 1e-3 * np.abs(lum).max()
+        ratios = F[:, big] / lum[big]
+        assert np.ptp(ratios, axis=1).max() < 1e-9, (frame.index, ratios)
+    pipe.close()
+
+
+def test_order_selection_says_it_turns_the_light_and_the_bounce_off(capsys):
+    """lighting.select other than "fixed" compares SH models alone: the traced light and the bounce term are off, and
+    the pipeline says so (before, silently)."""
+    s = Session(device="cpu")
+    s.lighting.select = "gcv"
+    pipe = pipeline_module.Pipeline(s, Intrinsics(64, 48, 50.0, 50.0, 31.5, 23.5))
+    assert pipe.sun is None and not pipe.bounce
+    assert "lighting.select = 'gcv' compares SH models alone: the traced light" in capsys.readouterr().err
+    pipe.close()
+
+
 @pytest.mark.parametrize("section, key, value, message", [
     ("lighting", "process_noise", float("inf"), "lighting.process_noise must be a finite number, got inf"),
     ("lighting", "regularization", float("nan"), "lighting.regularization must be a finite number"),
@@ -205,6 +233,8 @@ def test_render_stride_is_the_shadows_own(tmp_path, monkeypatch):
     ("lighting", "black_level", 250, "lighting.black_level and saturation_level must be 8-bit levels"),
     ("lighting", "sun_candidates", 0, "lighting.sun_candidates must be >= 8"),
     ("lighting", "stride", 100, "lighting.stride must be in 1..64"),
+    ("lighting", "rays", 8, "lighting.rays must be >= 13 for 5 bands (25 coefficients; the transfer vectors span at "
+                            "most 2 x rays directions)"),   # each frame was rank deficient, flagged weak
     ("reconstruction", "trunc_voxels", 0.0, "reconstruction.trunc_voxels must be > 0"),
     ("reconstruction", "block_count", -5, "reconstruction.block_count must be >= 1"),
     ("output", "pictures_every", -1, "output.pictures_every must be >= 0"),

@@ -21,7 +21,7 @@ from photoreg.cli import build_parser
 from servecli import free_port, serving
 
 REPO = Path(__file__).resolve().parents[1]
-SMALL = {"--frames": "0:2", "--rays": "8", "--quiet": None}
+SMALL = {"--frames": "0:2", "--rays": "8", "--bands": "3", "--quiet": None}   # 8 rays hold 3 bands (16 >= 9)
 TINY_SYNTH = {"--frames": "2", "--size": "64x48", "--spp": "4"}
 
 # README command -> (how it is run, options added or replacing the README's values).
@@ -64,7 +64,8 @@ COMMANDS: dict[str, tuple[str, dict]] = {
                  "--synth-dir": "gen/bench"}),
     "photoreg bench speed path/to/recording --device cuda --stride 4 --rays 169 --bands 4":
         ("run", {"--device": "cpu", "--rays": "8", "--frames": "0:3", "--warmup": "1"}),
-    "photoreg bench speed sessions/demo.toml --device cpu": ("run", {"--rays": "8", "--frames": "0:3", "--warmup": "1"}),
+    "photoreg bench speed sessions/demo.toml --device cpu": ("run", {"--rays": "8", "--bands": "3", "--frames": "0:3",
+                                                                    "--warmup": "1"}),
 }
 DOCKER_VALUE_OPTIONS = {"-v", "--volume", "-p", "--publish", "-e", "--env", "--gpus", "--name", "-f", "-t"}
 

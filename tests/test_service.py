@@ -350,7 +350,7 @@ def test_a_stream_without_poses_is_tracked_and_gets_its_poses_back(server, data_
     rec_path = data_dir / "recordings" / "tum_fr1_rpy"
     out = tmp_path / "out"
     assert main(["stream", str(rec_path), "--url", server.server.url, "--out", str(out), "--no-poses", "--frames",
-                 "0:100:16", "--rays", "8", "--stride", "8", "--quiet"]) == 0
+                 "0:100:16", "--rays", "8", "--bands", "3", "--stride", "8", "--quiet"]) == 0
     records = [json.loads(line) for line in (out / "lighting.jsonl").read_text().splitlines()]
     assert [r["frame"] for r in records] == list(range(0, 100, 16))
     np.testing.assert_allclose(records[0]["pose"], np.eye(4), atol=1e-12)
@@ -620,6 +620,50 @@ def test_stream_reports_an_unreadable_frame_and_sends_the_rest(server, tmp_path)
     assert [r["frame"] for r in records] == [0, 1, 3] and not summary["errors"]
     (skipped,) = summary["frames_skipped"]
     assert skipped["frame"] == 2 and str(bad) in skipped["error"]
+
+
+def test_stream_leaves_only_its_own_outputs(server, tmp_path, capsys):
+    """A stream into a folder an earlier one wrote: its trajectory and composites that this one did not write are
+    gone (photoreg score would take them for this stream's), other files stay; a stream none of whose frames is
+    answered replaces nothing (exit status 2, the first unreadable frame named); --window 0 is refused at once."""
+    rec = write_recording(tmp_path / "rec", K, 3)
+    out = tmp_path / "out"
+    stream(rec, server.server.url, out, "--no-poses")
+    assert (out / "trajectory.txt").is_file()
+    (out / "composite").mkdir()
+    for name in ("000010.png", "000000.jpg", "notes.txt"):
+        (out / "composite" / name).write_text("earlier")
+    records, summary = stream(rec, server.server.url, out)
+    assert len(records) == 3 and not (out / "trajectory.txt").exists()
+    assert sorted(p.name for p in (out / "composite").iterdir()) == ["notes.txt"]
+    before = {name: (out / name).read_bytes() for name in ("lighting.jsonl", "summary.json")}
+    for path in open_recording(rec).color_files:
+        path.write_bytes(b"not a png")
+    capsys.readouterr()
+    assert main(["stream", str(rec), "--url", server.server.url, "--out", str(out), *STREAM_ARGS]) == 2
+    err = capsys.readouterr().err
+    assert "no frame was answered (frame 0: " in err and f"nothing in {out} was replaced" in err
+    assert {name: (out / name).read_bytes() for name in before} == before
+    assert main(["stream", str(rec), "--url", server.server.url, "--window", "0", *STREAM_ARGS]) == 2
+    assert "--window must be >= 1" in capsys.readouterr().err
+
+
+def test_a_server_that_stops_answering_costs_no_reply_already_received(recording, monkeypatch):
+    """The pipeline stalls from frame 1 on (a server that stopped answering): replay stops at the reply timeout like a
+    closed connection, keeping frame 0's reply (before: an error, and what had arrived was lost)."""
+    process = Pipeline.process
+
+    def stalling(self, frame):
+        if frame.index >= 1:
+            time.sleep(4.0)
+        return process(self, frame)
+
+    monkeypatch.setattr(Pipeline, "process", stalling)
+    with ServerThread(ServerConfig(port=0, device="cpu", idle_timeout=60, processes=False, queue=4)) as running:
+        client = connect(running.server.url, open_recording(recording).intrinsics,
+                         {"lighting": {"rays": 16, "bands": 2, "stride": 4}})
+        summary = replay(client, list(open_recording(recording))[:3], window=1, reply_timeout=2.0)
+    assert summary["frames_processed"] >= 1 and summary["stopped"] == "no reply from the server within 2 s"
 
 
 def test_four_concurrent_clients(server, recording, tmp_path):

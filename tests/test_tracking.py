@@ -33,7 +33,7 @@ def test_tracking_without_poses_on_tum(data_dir, tmp_path):
     """Poses withheld: frame-to-model tracking follows the motion-capture trajectory."""
     out = tmp_path / "track"
     assert main(["run", str(data_dir / "recordings" / "tum_fr1_rpy"), "--no-poses", "--frames", "0:15",
-                 "--rays", "8", "--stride", "8", "--out", str(out), "--quiet"]) == 0
+                 "--rays", "8", "--bands", "3", "--stride", "8", "--out", str(out), "--quiet"]) == 0
     tracking = json.loads((out / "summary.json").read_text())["tracking"]
     assert tracking["failures"] == []
     assert tracking["ate_rmse_m"] < 0.03
@@ -69,8 +69,8 @@ def test_tracking_frames_far_apart_on_tum(data_dir, tmp_path):
     gives each frame's tracked pose (the world: the first frame's camera)."""
     out = tmp_path / "track"
     rec_path = data_dir / "recordings" / "tum_fr1_rpy"
-    assert main(["run", str(rec_path), "--no-poses", "--frames", "0:100:16", "--rays", "8", "--stride", "8",
-                 "--out", str(out), "--quiet"]) == 0
+    assert main(["run", str(rec_path), "--no-poses", "--frames", "0:100:16", "--rays", "8", "--bands", "3", "--stride",
+                 "8", "--out", str(out), "--quiet"]) == 0
     tracking = json.loads((out / "summary.json").read_text())["tracking"]
     assert tracking["failures"] == []
     assert tracking["ate_rmse_m"] < 0.03
@@ -95,7 +95,7 @@ def _covered(rec, frames: range, covered: range):
     (a hand over the lens while the camera moves on)."""
     session = Session(device="cpu")
     session.recording.use_poses = False
-    session.lighting.rays, session.lighting.stride = 8, 8
+    session.lighting.rays, session.lighting.bands, session.lighting.stride = 8, 3, 8
     pipe = Pipeline(session, rec.intrinsics)
     try:
         for i in frames:

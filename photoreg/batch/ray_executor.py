@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import math
 import os
+import socket
 import sys
 
 from .local import gpu_memory, workers_per_gpu
@@ -28,6 +29,21 @@ def _import_ray():
     return ray
 
 
+PROBE_TIMEOUT_S = 5.0   # a --ray-address HOST:PORT must accept a TCP connection within this (ray.init retries minutes)
+
+
+def check_reachable(address: str) -> None:
+    """Refuse a --ray-address HOST:PORT (or ray://HOST:PORT) where nothing accepts a connection, at once: Ray itself
+    retries for minutes, and not even SIGTERM stops it. 'auto' and other forms are left to Ray."""
+    host, sep, port = address.removeprefix("ray://").rpartition(":")
+    if not sep or not host or not port.isdigit():
+        return
+    try:
+        socket.create_connection((host, int(port)), timeout=PROBE_TIMEOUT_S).close()
+    except OSError as e:
+        raise RuntimeError(f"--ray-address {address}: nothing answers there ({e}); is the Ray head running?") from None
+
+
 def run_ray(tasks: list[SessionTask], progress: BatchProgress, workers: int | None = None,
             address: str | None = None) -> list[dict]:
     """Run the sessions as Ray tasks; results in task order. Uses the Ray instance already initialised
@@ -37,6 +53,7 @@ def run_ray(tasks: list[SessionTask], progress: BatchProgress, workers: int | No
 
     started = not ray.is_initialized()
     if started and address:
+        check_reachable(address)
         try:
             ray.init(address=address)
         except (ConnectionError, ValueError) as e:

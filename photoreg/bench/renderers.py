@@ -12,8 +12,9 @@ also runs with the generator's true light (the error left is the renderer's), an
 is scored twice: with the path tracer's own object and with that object rendered again with other seeds
 (synth.generate.rerender_inserts; the baseline without the advantage of sharing the ground truth's noise).
 
-Rows go to benchmarks/results/renderers_<device>_<spp>spp.json; the report (markdown table and a PNG of
-ms per frame against si-RMSE) is rebuilt from every such file, so CPU and GPU runs end up side by side.
+Rows go to benchmarks/results/renderers_<device>_<spp>spp.json, the scenes run replacing their rows and the
+others' kept (a file of another size or frame count is refused before any work); the report (markdown table and a
+PNG of ms per frame against si-RMSE) is rebuilt from every such file, so CPU and GPU runs end up side by side.
 """
 from __future__ import annotations
 
@@ -27,12 +28,13 @@ from pathlib import Path
 
 import numpy as np
 
-from ..io.atomic import write_json, write_text
+from ..io.atomic import check_output_file, write_json, write_text
 from ..lighting import sh
 from . import metrics
 from .scenes import SCENE_CACHE, cached_scene
 
 RESULTS_GLOB = "renderers_*.json"
+RUN_KEYS = ("device_name", "size", "frames", "spp", "rows")   # what the report reads of a results file
 
 
 def run_all_renderers(session, frames: list[int], renderers: dict,
@@ -124,11 +126,25 @@ def bench_scene(kind: str, orbit: Path, static: Path, device: str, renderers: di
     return rows
 
 
+def load_runs(results_dir: Path) -> dict[Path, dict]:
+    """Every renderers_*.json in `results_dir` by path; ValueError naming a file that is not such a result."""
+    runs = {}
+    for p in sorted(results_dir.glob(RESULTS_GLOB)):
+        try:
+            run = json.loads(p.read_text())
+            if not isinstance(run, dict) or not all(k in run for k in RUN_KEYS):
+                raise ValueError(f"needs the keys {', '.join(RUN_KEYS)}")
+        except ValueError as e:
+            raise ValueError(f"{p}: not a `photoreg bench renderers` result ({e})") from None
+        runs[p] = run
+    return runs
+
+
 def write_report(results_dir: Path, md: Path, png: Path) -> None:
     """benchmarks/renderers.md and the PNG from every renderers_*.json in `results_dir`."""
     from ..synth.scenes import INSERT_MESH_SCALE
 
-    runs = [json.loads(p.read_text()) for p in sorted(results_dir.glob(RESULTS_GLOB))]
+    runs = list(load_runs(results_dir).values())
     lines = ["# Shadow renderers side by side", "",
              "Written by `photoreg bench renderers` from benchmarks/results/renderers_*.json. Every renderer "
              "runs on the same frames, lighting and G-buffer (photoreg/bench/renderers.py says how); error in "
@@ -190,30 +206,47 @@ def renderers_command(args) -> int:
     from ..device import resolve_device
     from ..render.registry import RENDERERS, get_renderer
     from ..synth.generate import parse_size
+    from ..synth.scenes import SCENE_KINDS
     from .speed import device_name
 
-    names = args.renderers.split(",") if args.renderers else sorted(RENDERERS)
+    names = [n.strip() for n in args.renderers.split(",")] if args.renderers else sorted(RENDERERS)
     renderers = {n: get_renderer(n) for n in names}      # an unknown name is an error listing the registered
+    kinds = [k.strip() for k in args.scenes.split(",")]
+    unknown = [k for k in kinds if k not in SCENE_KINDS]
+    if unknown:
+        raise ValueError(f"--scenes: unknown scene kind(s) {', '.join(map(repr, unknown))}; choose from "
+                         f"{', '.join(SCENE_KINDS)}")
     w, h = parse_size(args.size)
+    check_output_file(args.md, "--md")
+    check_output_file(args.plot, "--plot")
     cache = Path(args.synth_dir or SCENE_CACHE)
 
     def log(msg: str) -> None:
         print(f"bench renderers: {msg}", file=sys.stderr, flush=True)
 
     device = resolve_device(args.device or "auto")
+    results = Path(args.results_dir)
+    mesh = f"_{Path(args.insert_mesh).stem}" if args.insert_mesh else ""
+    target = results / f"renderers_{device.split(':')[0]}_{args.spp}spp{mesh}.json"
+    earlier = load_runs(results)   # every file the report reads, checked before any work
+    kept = []   # the earlier run's rows of the scenes this one does not run again
+    if target in earlier:
+        run = earlier[target]
+        if (run["size"], run["frames"]) != (f"{w}x{h}", args.frames):
+            raise ValueError(f"{target} holds a {run['size']} run of {run['frames']} frames, this one is {w}x{h} of "
+                             f"{args.frames}: give another --results-dir, or move that file")
+        kept = [r for r in run["rows"] if r["scene"] not in kinds]
     rows = []
-    for kind in args.scenes.split(","):
+    for kind in kinds:
         orbit = cached_scene(cache, kind, w, h, args.frames, args.spp, inserts="auto", log=log,
                              insert_mesh=args.insert_mesh)
         static = cached_scene(cache, kind, w, h, args.frames, args.spp, camera="static", log=log)
         rows += bench_scene(kind, orbit, static, device, renderers)
-    results = Path(args.results_dir)
     run = {"device": device, "device_name": device_name(device), "warp": wp.__version__, "open3d": o3d.__version__,
            "command": "photoreg " + " ".join(sys.argv[1:]), "date": datetime.date.today().isoformat(),
-           "size": f"{w}x{h}", "frames": args.frames, "spp": args.spp, "rows": rows,
+           "size": f"{w}x{h}", "frames": args.frames, "spp": args.spp, "rows": kept + rows,
            "insert": Path(args.insert_mesh).name if args.insert_mesh else None}
-    mesh = f"_{Path(args.insert_mesh).stem}" if args.insert_mesh else ""
-    write_json(results / f"renderers_{device.split(':')[0]}_{args.spp}spp{mesh}.json", run)
+    write_json(target, run)
     write_report(results, Path(args.md), Path(args.plot))
     for r in rows:
         ms = "-" if r["ms_mean"] is None else f"{r['ms_mean']:8.1f}"

@@ -26,7 +26,7 @@ from scipy.spatial.transform import Rotation
 
 from ..io.atomic import write_json
 from ..io.images import read_exr, read_rgb, srgb_to_linear
-from ..io.recording import detect_format, open_recording
+from ..io.recording import Recording, detect_format, open_recording
 from ..lighting import sh
 from . import metrics
 
@@ -90,14 +90,16 @@ def true_light(recording: str | Path) -> tuple[np.ndarray, dict | None]:
                "irradiance": (float(gt["exposure"]) * sun.irradiance * np.asarray(sun.colour)).tolist(), "gain": 1.0}
 
 
-def load_lighting(out: str | Path) -> tuple[dict[int, np.ndarray], dict[int, list | None]]:
-    """From OUT/lighting.jsonl, frame index -> SH (3, B*B) (non-finite SH kept as is, 'sh': null -> NaN), and frame
-    index -> the traced light's direction (diagnostics.sun.direction; None where no light was held)."""
+def load_lighting(out: str | Path) -> tuple[dict[int, np.ndarray], dict[int, list | None], dict[int, list | None]]:
+    """From OUT/lighting.jsonl, frame index -> SH (3, B*B) (non-finite SH kept as is, 'sh': null -> NaN), frame
+    index -> the traced light's direction (diagnostics.sun.direction; None where no light was held) and frame index ->
+    the pose it was lit from (None where it had none)."""
     path = Path(out) / "lighting.jsonl"
     if not path.is_file():
         raise FileNotFoundError(f"{path}: no per-frame lighting (lighting.jsonl) in {out}")
     frames: dict[int, np.ndarray] = {}
     lights: dict[int, list | None] = {}
+    poses: dict[int, list | None] = {}
     lines: dict[int, int] = {}
     with path.open() as f:
         for lineno, line in enumerate(f, 1):
@@ -124,21 +126,28 @@ def load_lighting(out: str | Path) -> tuple[dict[int, np.ndarray], dict[int, lis
             lights[frame] = light.get("direction") if isinstance(light, dict) else None
             if lights[frame] is not None and np.asarray(lights[frame]).shape != (3,):
                 raise ValueError(f"{where}: diagnostics.sun.direction must be 3 numbers, got {lights[frame]!r}")
+            poses[frame] = obj.get("pose")
             lines[frame] = lineno
     if not frames:
         raise ValueError(f"{path}: no frames (an empty run's file?)")
-    return frames, lights
+    return frames, lights, poses
 
 
-def color_files(recording: str | Path) -> list[Path]:
-    """Colour image of each frame in the recording's frame order (photoreg.io.recording);
-    [] for a folder that holds ground truth but no recognised recording index."""
+def recording_of(recording: str | Path) -> Recording | None:
+    """The recording (photoreg.io.recording); None for a folder that holds ground truth but no recognised recording
+    index."""
     path = Path(recording)
     try:
         detect_format(path)
     except ValueError:
-        return []
-    return open_recording(path).color_files
+        return None
+    return open_recording(path)
+
+
+def color_files(recording: str | Path) -> list[Path]:
+    """Colour image of each frame in the recording's frame order; [] where recording_of finds no recording."""
+    rec = recording_of(recording)
+    return [] if rec is None else rec.color_files
 
 
 def score_lighting(estimates: dict[int, np.ndarray], gt: np.ndarray, n_expected: int = 0,
@@ -276,13 +285,42 @@ def composite_flicker(out: str | Path, recording: str | Path) -> dict | None:
             "composite": metrics.image_flicker(comps, region), "camera": metrics.image_flicker(cams, region)}
 
 
+def tracked_to_world(out: str | Path, recording: str | Path,
+                     poses: dict[int, list | None]) -> tuple[np.ndarray, int] | None:
+    """For a run that tracked the camera (summary.json: use_poses false), whose world is its first tracked camera's
+    frame: (the rotation into the recording's world, the frame whose recorded and tracked poses relate the two); None
+    for a run lit from the recorded poses. ValueError where no frame has both."""
+    try:
+        settings = json.loads((Path(out) / "summary.json").read_text()).get("settings", {})
+    except (OSError, ValueError):
+        return None
+    if settings.get("use_poses", True):
+        return None
+    rec = recording_of(recording)
+    recorded = None if rec is None else rec.poses
+    for i in sorted(poses):
+        if poses[i] is not None and recorded is not None and i < len(recorded) and recorded[i] is not None:
+            return (recorded[i] @ np.linalg.inv(np.asarray(poses[i], np.float64)))[:3, :3], i
+    raise ValueError(f"{out}: a tracked run (--no-poses), its lighting in its first camera's frame, and no frame of "
+                     f"{recording} has a recorded pose to turn it into the ground truth's world")
+
+
 def score(out: str | Path, recording: str | Path, composite: bool = False) -> dict:
-    """All scores of run folder `out` against `recording` as a JSON-ready dict."""
+    """All scores of run folder `out` against `recording` as a JSON-ready dict. A tracked run's lighting is turned
+    into the recording's world first (tracked_to_world)."""
     gt = load_gt(recording)
     sun = true_light(recording)[1] if (Path(recording) / "scene.json").is_file() else None   # a generated one's
-    estimates, lights = load_lighting(out)
+    estimates, lights, poses = load_lighting(out)
+    turn = tracked_to_world(out, recording, poses)
+    if turn is not None:
+        R, anchor = turn
+        estimates = {i: sh.rotate(e, R) for i, e in estimates.items()}
+        lights = {i: None if d is None else (R @ np.asarray(d, np.float64)).tolist() for i, d in lights.items()}
     result = {"out": str(out), "recording": str(recording),
               "lighting": score_lighting(estimates, gt, len(color_files(recording)), lights, sun)}
+    if turn is not None:
+        result["lighting"]["notes"].append(f"a tracked run (--no-poses): its lighting turned into the recording's "
+                                           f"world by frame {anchor}'s recorded and tracked poses")
     if composite:
         inserts = any((Path(recording) / "insert").glob("*.exr"))
         result["composite"] = score_composites(out, recording) if inserts else {"notes": ["no insert renders"]}

@@ -13,7 +13,10 @@ import sys
 import numpy as np
 
 from ..config import Session, load_session, parse_frames, validate
-from ..io.atomic import write_json
+from ..io.atomic import check_output_file, write_json
+
+BARE_SETTINGS = (4, 64, 3)   # a recording folder's lighting stride, rays and bands (the benchmarks' live setting)
+DEFAULT_FRAMES = "0:12"      # where neither --frames nor the session names frames
 
 
 def device_name(device: str) -> str:
@@ -94,35 +97,32 @@ def bench_recording(session: Session, warmup: int = 2) -> dict:
 def speed_command(args) -> int:
     from ..kernels.launch import set_cpu_threads
 
+    if args.json_out:
+        check_output_file(args.json_out, "--json")
     if args.threads is not None:
         set_cpu_threads(args.threads)
     if args.recording.lower().endswith(".toml"):   # a session: its objects are inserted, the render stage timed too
-        s = load_session(args.recording)
+        s = load_session(args.recording)            # and its settings kept but for the options given
     else:
         s = Session()
         s.recording.path = args.recording
-    s.device = args.device or "auto"
-    s.frames = args.frames or "0:12"
-    s.lighting.stride, s.lighting.rays, s.lighting.bands = args.stride, args.rays, args.bands
-    if args.render_stride:
-        s.render.stride = args.render_stride
-    if args.gbuffer:
-        s.render.gbuffer = args.gbuffer
-    if args.shutter is not None:
-        s.render.shutter = args.shutter
-    if args.voxel_size:
-        s.reconstruction.voxel_size = args.voxel_size
-    if args.ray_length:
-        s.lighting.ray_length = args.ray_length
-    s.lighting.sun, s.lighting.bounce = not args.no_sun, not args.no_bounce
-    s.lighting.bounce_observed = not args.no_observed_bounce
-    s.lighting.every = args.every
-    s.lighting.asynchronous = args.asynchronous
-    s.lighting.solve_process = not args.no_solve_process
-    if args.normal_smoothing is not None:
-        s.reconstruction.normal_smoothing_voxels = args.normal_smoothing
-    if args.no_history:
-        s.lighting.history = 0
+        s.lighting.stride, s.lighting.rays, s.lighting.bands = BARE_SETTINGS
+    s.device = args.device or s.device
+    s.frames = args.frames or s.frames or DEFAULT_FRAMES
+    for value, section, key in ((args.stride, "lighting", "stride"), (args.rays, "lighting", "rays"),
+                                (args.bands, "lighting", "bands"), (args.every, "lighting", "every"),
+                                (args.ray_length, "lighting", "ray_length"), (args.render_stride, "render", "stride"),
+                                (args.gbuffer, "render", "gbuffer"), (args.shutter, "render", "shutter"),
+                                (args.voxel_size, "reconstruction", "voxel_size"),
+                                (args.normal_smoothing, "reconstruction", "normal_smoothing_voxels")):
+        if value is not None:
+            setattr(getattr(s, section), key, value)
+    for flag, key, value in ((args.no_sun, "sun", False), (args.no_bounce, "bounce", False),
+                             (args.no_observed_bounce, "bounce_observed", False),
+                             (args.asynchronous, "asynchronous", True), (args.no_solve_process, "solve_process", False),
+                             (args.no_history, "history", 0)):
+        if flag:
+            setattr(s.lighting, key, value)
     if args.no_poses:
         s.recording.use_poses = False
     validate(s)

@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from ..config import Session, validate
-from ..io.atomic import atomic_path, write_text
+from ..io.atomic import atomic_path, check_output_file, write_text
 from . import metrics
 from .scenes import SCENE_CACHE, cached_scene
 
@@ -172,7 +172,14 @@ def read_csv(path: Path) -> list[dict]:
         missing = [k for k in KEY if k not in (reader.fieldnames or [])]
         if missing:
             raise ValueError(f"{path}: not a speed/error table (columns {missing} missing)")
-        return [{c: r.get(c) or "" for c in COLUMNS} for r in reader]
+        rows = [{c: r.get(c) or "" for c in COLUMNS} for r in reader]
+    for line, r in enumerate(rows, 2):
+        try:
+            float(r["voxel_size"]), int(r["stride"]), int(r["rays"]), int(r["bands"])
+        except ValueError:
+            raise ValueError(f"{path}:{line}: not a whole row of a speed/error table (stride {r['stride']!r}, rays "
+                             f"{r['rays']!r}, bands {r['bands']!r}, voxel_size {r['voxel_size']!r})") from None
+    return rows
 
 
 def merge_csv(path: Path, rows: list[dict]) -> list[dict]:
@@ -275,6 +282,10 @@ def sweep_command(args) -> int:
         plot_pareto(rows, Path(args.plot))
         print(f"wrote {args.plot} from {args.csv} ({len(rows)} rows)")
         return 0
+    check_output_file(args.csv, "--csv")
+    check_output_file(args.plot, "--plot")
+    if Path(args.csv).is_file():
+        read_csv(Path(args.csv))   # the table the rows are merged into: checked before hours of work
     if args.threads is not None:
         set_cpu_threads(args.threads)
     settings = grid(_ints(args.strides, "strides"), _ints(args.rays, "rays"), _ints(args.bands, "bands"),

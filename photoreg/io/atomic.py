@@ -33,3 +33,17 @@ def write_text(path: str | os.PathLike, text: str) -> None:
 
 def write_json(path: str | os.PathLike, obj) -> None:
     write_text(path, json.dumps(obj, indent=2) + "\n")
+
+
+def check_output_file(path: str | os.PathLike, option: str) -> None:
+    """Refuse, before any work is done, an output file's path that is a folder or lies under a file (`option`: the
+    command-line option or key that gave it, for the message)."""
+    path = Path(path)
+    if path.is_dir():
+        raise IsADirectoryError(f"{path} ({option}) is a folder, not a file")
+    for parent in path.parents:
+        if parent.exists():
+            if not parent.is_dir():
+                raise NotADirectoryError(f"{path} ({option}): {parent} is a file, not a folder")
+            return
+

@@ -97,6 +97,16 @@ def project(dirs: np.ndarray, values: np.ndarray, weights: np.ndarray, bands: in
     return ((sh_basis(dirs, bands) * np.asarray(weights, dtype=np.float64)[:, None]).T @ v).T
 
 
+def rotate(sh: np.ndarray, R: np.ndarray) -> np.ndarray:
+    """SH (C, B*B) of the lighting turned by rotation R (3x3): L'(w) = L(R^T w), e.g. from a camera's frame into the
+    world with R camera-to-world. Exact to rounding (each band is closed under rotation): fitted to the turned
+    function at 4 B^2 directions."""
+    sh = np.atleast_2d(np.asarray(sh, dtype=np.float64))
+    dirs = fibonacci_cap(4 * sh.shape[1], -1.0)
+    values = radiance(sh, dirs @ np.asarray(R, dtype=np.float64))   # rows w @ R = (R^T w)^T
+    return np.linalg.lstsq(sh_basis(dirs, bands_of(sh.shape[1])), values, rcond=None)[0].T
+
+
 def fibonacci_cap(n: int, cos_min: float) -> np.ndarray:
     """n unit directions (n, 3) spread uniformly in solid angle over the cap z >= cos_min around +z
     (a spherical Fibonacci spiral; cos_min = -1 is the whole sphere)."""
@@ -119,6 +129,14 @@ def fibonacci_sphere(n: int, rotation_seed: int | None = None) -> np.ndarray:
 def luminance(sh: np.ndarray) -> np.ndarray:
     """Luminance SH (B*B,) of RGB SH (3, B*B)."""
     return LUMINANCE @ np.asarray(sh, dtype=np.float64)
+
+
+def one_chroma(sh: np.ndarray) -> np.ndarray:
+    """RGB SH (3, B*B) as one colour times a luminance SH: its luminance scaled per channel by its band 0's colour
+    (lighting.mode "white" after a filter that weighs the channels apart)."""
+    sh = np.asarray(sh, dtype=np.float64)
+    lum = luminance(sh)
+    return (sh[:, 0] / lum[0])[:, None] * lum[None, :] if abs(lum[0]) > 1e-12 else sh.copy()
 
 
 def dominant_direction(sh: np.ndarray) -> np.ndarray:

@@ -38,6 +38,10 @@ class ServiceClosed(RuntimeError):
         self.code, self.reason = code, reason
 
 
+class NoReply(RuntimeError):
+    """The server answered none of the frames in flight within the reply timeout."""
+
+
 class Client:
     """A ready session on a photoreg server; use connect() to make one."""
 
@@ -214,8 +218,8 @@ def replay(client: Client, frames: Iterable[Frame], realtime: bool = False, wind
             else:
                 while len(pending) >= window and not bye:
                     msg = client.recv(reply_timeout)
-                    if msg is None:
-                        raise RuntimeError(f"no reply from the server within {reply_timeout:g} s")
+                    if msg is None:   # a server that stopped answering: what arrived is kept, as when it closes
+                        raise NoReply(f"no reply from the server within {reply_timeout:g} s")
                     handle(msg)
             for msg in client.poll():
                 handle(msg)
@@ -227,7 +231,7 @@ def replay(client: Client, frames: Iterable[Frame], realtime: bool = False, wind
             counts["sent"] += 1
     except KeyboardInterrupt:
         stopped = "interrupted"
-    except ServiceClosed as e:
+    except (ServiceClosed, NoReply) as e:
         stopped = str(e)
     finally:
         messages.close()
@@ -279,7 +283,7 @@ def stream_command(args) -> int:
     from ..io.poses import write_tum_trajectory
     from ..io.recording import ReadAhead, open_recording
     from ..recon.tracking import ate_against
-    from ..runner import Progress, writer_threads
+    from ..runner import Progress, remove_earlier, writer_threads
 
     rec = open_recording(args.recording)
     indices = parse_frames(args.frames or "", len(rec))
@@ -297,7 +301,11 @@ def stream_command(args) -> int:
         options["render"] = {**options.get("render", {}), "stride": args.render_stride}
     if args.no_poses or not rec.has_poses:
         options["track"] = True
+    if args.window < 1:
+        raise ValueError(f"--window must be >= 1 (frames in flight), got {args.window}")
     out = Path(args.out) if args.out else None
+    if out is not None and out.exists() and not out.is_dir():
+        raise NotADirectoryError(f"output folder {out} (--out) is a file")
     skipped: list[dict] = []
     progress = Progress(len(indices), args.quiet)
     t_hello = time.perf_counter()
@@ -321,10 +329,14 @@ def stream_command(args) -> int:
             tracked[record["frame"]] = (record["timestamp"], np.asarray(record["pose"], dtype=np.float64))
         progress.step(f"frame {record['frame']}" + (" (weak)" if record["diagnostics"].get("weak") else ""))
 
+    written: set[str] = set()   # composite/ files of this stream
+
     def on_composite(index: int, encoding: str, image: bytes) -> None:
         if out is not None:
-            with atomic_path(out / "composite" / f"{index:06d}.{'png' if encoding == 'png' else 'jpg'}") as tmp:
+            name = f"{index:06d}.{'png' if encoding == 'png' else 'jpg'}"
+            with atomic_path(out / "composite" / name) as tmp:
                 tmp.write_bytes(image)
+            written.add(name)
 
     main_thread = threading.current_thread() is threading.main_thread()
     if main_thread:   # SIGTERM stops like Ctrl-C: what has arrived is saved
@@ -344,11 +356,18 @@ def stream_command(args) -> int:
         summary["tracking"] = {"frames_tracked": len(tracked)}
         if rec.has_poses:
             summary["tracking"].update(ate_against({i: T for i, (_, T) in tracked.items()}, rec.poses))
+    if out is not None and not summary["frames_processed"]:   # an earlier stream's outputs stand
+        (out / "lighting.jsonl.partial").unlink(missing_ok=True)
+        first = f" (frame {skipped[0]['frame']}: {skipped[0]['error']})" if skipped else ""
+        why = f"; {summary['stopped']}" if summary["stopped"] else ""
+        raise ValueError(f"{rec.path}: no frame was answered{first}{why}; nothing in {out} was replaced")
     if out is not None:
         os.replace(out / "lighting.jsonl.partial", out / "lighting.jsonl")
         write_json(out / "summary.json", summary)
         if options.get("track"):
             write_tum_trajectory(out / "trajectory.txt", [tracked[i] for i in sorted(tracked)])
+        remove_earlier(out, {"composite": ((".png", ".jpg"), written)}, () if options.get("track") else
+                       ("trajectory.txt",))
     for sk in skipped:
         print(f"photoreg: skipped frame {sk['frame']}: {sk['error']}", file=sys.stderr)
     for e in summary["errors"]:
