@@ -254,6 +254,9 @@ def main(argv: list[str] | None = None) -> int:
     except (ValueError, OSError, RuntimeError) as e:   # OSError: a file that cannot be read or written, named
         print(f"photoreg {args.command}: error: {open3d_message(e)}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt:   # Ctrl-C: what was written whole stays (files are renamed into place), no traceback
+        print(f"\nphotoreg {args.command}: interrupted", file=sys.stderr)
+        return 130
 
 
 if __name__ == "__main__":

@@ -482,6 +482,7 @@ class Pipeline:
                 # the composite keeps the preprocessed colour outside the renderer's region: the frame's own unless
                 # the luminance was denoised
                 region = self.render.region if lc.denoise == "none" else None
+                notes = [*notes, *(f"render: {n}" for n in self.render.last.notes)]   # why it drew no shadow, say
         if F is None:  # no pose: keep the previous estimate (or darkness), flagged weak
             prev = self.prev_F if self.prev_F is not None else np.zeros((3, self.solver_cfg.fit_bands ** 2))
             F, diag = Lighting(prev.copy()), SolveDiagnostics(notes=["no pose: previous estimate repeated"])

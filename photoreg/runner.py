@@ -222,7 +222,8 @@ def run_session(s: Session, quiet: bool = False, on_frame: Callable[[int, int], 
         "video": None if video is None else {"file": video.path.name, "frames": video.frames, "fps": round(fps, 3)},
         "timings_ms_mean": {k: round(float(np.mean([r.timings_ms.get(k, 0.0) for r in results])), 3) for k in stages},
         "settings": {"lighting": vars(s.lighting), "reconstruction": vars(s.reconstruction),
-                     "use_poses": s.recording.use_poses},
+                     "use_poses": s.recording.use_poses, "undistort": s.recording.undistort, "frames": s.frames,
+                     "render": vars(s.render) if s.objects else None},
     }
     if pipe.tracker is not None:
         summary["tracking"] = pipe.tracker.report()

@@ -140,12 +140,21 @@ def test_renderer_needs_the_scene():
 
 
 def test_cli_train_finds_the_committed_demo_weights(tmp_path, monkeypatch, capsys):
+    """The demo's object has committed weights: found, not trained; with --out they are copied there (before, --out
+    was ignored), and an --out that is a file is refused before any work."""
     from photoreg.cli import main
 
-    monkeypatch.setenv("PHOTOREG_CACHE", str(tmp_path))
-    assert main(["train", "neural_soft", str(REPO / "data" / "demo" / "session.toml")]) == 0
+    monkeypatch.setenv("PHOTOREG_CACHE", str(tmp_path / "cache"))
+    session = str(REPO / "data" / "demo" / "session.toml")
+    assert main(["train", "neural_soft", session]) == 0
     out = capsys.readouterr().out
-    assert f"weights cached at {COMMITTED_DIR}" in out and not any(tmp_path.iterdir())
+    assert f"weights at {COMMITTED_DIR}" in out and not (tmp_path / "cache").exists()
+    assert main(["train", "neural_soft", session, "--out", str(tmp_path / "w")]) == 0
+    (copied,) = (tmp_path / "w").iterdir()
+    assert (COMMITTED_DIR / copied.name).read_bytes() == copied.read_bytes()
+    (tmp_path / "file").write_text("x")
+    assert main(["train", "neural_soft", session, "--out", str(tmp_path / "file")]) == 2
+    assert f"{tmp_path / 'file'} (--out) is a file, not a folder" in capsys.readouterr().err
 
 
 def test_malformed_weights_name_the_file(tmp_path):

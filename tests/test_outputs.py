@@ -251,3 +251,19 @@ def test_cli_names_the_file_it_cannot_write(tmp_path, capsys):
                  "--rays", "16", "--stride", "8", "--quiet"]) == 2
     err = capsys.readouterr().err
     assert "photoreg run: error:" in err and str(tmp_path / "composite") in err and "Traceback" not in err
+
+
+def test_ctrl_c_ends_a_command_without_a_traceback(tmp_path, monkeypatch, capsys):
+    """Ctrl-C during any command (here as the run's frames raise it) exits with status 130 and one line, no traceback."""
+    from photoreg.cli import main
+    from photoreg.pipeline import Pipeline
+
+    def interrupted(self, frame):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(Pipeline, "process", interrupted)
+    assert main(["run", str(REPO / "data" / "demo"), "--frames", "0:2", "--rays", "16", "--quiet", "--out",
+                 str(tmp_path)]) == 130
+    err = capsys.readouterr().err
+    assert "photoreg run: interrupted" in err and "Traceback" not in err
+

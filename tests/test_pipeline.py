@@ -196,6 +196,19 @@ def test_render_stride_is_the_shadows_own(tmp_path, monkeypatch):
         validate(s)
 
 
+def test_the_renderer_s_notes_reach_the_frame_s_diagnostics():
+    """One SH band and no traced light: no directional light for the shadow map, which draws no shadow and says why;
+    the note reaches the frame's diagnostics (lighting.jsonl), not only the Python API."""
+    s = load_session(REPO / "data" / "demo" / "session.toml")
+    s.device, s.render.shadows, s.lighting.bands, s.lighting.rays, s.lighting.stride = "cpu", "shadowmap", 1, 8, 8
+    s.lighting.sun = False
+    rec = open_recording(s.recording.path)
+    pipe = pipeline_module.Pipeline(s, rec.intrinsics)
+    r = pipe.process(rec.frame(0))
+    assert "render: shadowmap: no directional light in F, no shadows" in r.diagnostics.notes, r.diagnostics.notes
+    pipe.close()
+
+
 def test_white_mode_stays_one_colour_through_the_filter():
     """lighting.mode = "white": one colour times a luminance SH in every frame, the temporal filter's too (it weighs
     the channels apart: before, the channels' ratios spread by up to 0.96 across the coefficients from frame 1 on)."""

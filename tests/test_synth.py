@@ -355,6 +355,28 @@ def test_bad_input_is_named(tmp_path, capsys, argv, message):
     assert message in capsys.readouterr().err
 
 
+def test_an_interrupted_render_leaves_no_recording(tmp_path, monkeypatch):
+    """Interrupted at frame 1 (Ctrl-C), the render leaves OUT.partial, not OUT: nothing that passes for a recording;
+    the next run starts the partial folder again and renames it when whole."""
+    import photoreg.synth.generate as gen
+
+    exposed = gen._exposed
+
+    def interrupted(scene, cfg, layout, i, pose, seed):
+        if i == 1:
+            raise KeyboardInterrupt
+        return exposed(scene, cfg, layout, i, pose, seed)
+
+    cfg = SynthConfig("plane", str(tmp_path / "rec"), frames=2, width=32, height=24, spp=1, insert_frames="none")
+    monkeypatch.setattr(gen, "_exposed", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        generate(cfg, log=None)
+    assert not (tmp_path / "rec").exists() and (tmp_path / "rec.partial" / "rgb").is_dir()
+    monkeypatch.setattr(gen, "_exposed", exposed)
+    assert generate(cfg, log=None) == tmp_path / "rec"
+    assert (tmp_path / "rec" / "scene.json").is_file() and not (tmp_path / "rec.partial").exists()
+
+
 def test_refuses_non_empty_output(tmp_path, capsys):
     (tmp_path / "keep.txt").write_text("x")
     assert cli.main(["synth", "plane", "--out", str(tmp_path)]) == 2

@@ -2,7 +2,6 @@
 `photoreg bench sweep` and `photoreg bench renderers`."""
 from __future__ import annotations
 
-import shutil
 from pathlib import Path
 from typing import Callable
 
@@ -12,8 +11,8 @@ SCENE_CACHE = Path.home() / ".cache" / "photoreg" / "bench_scenes"
 def cached_scene(cache: Path, kind: str, width: int, height: int, frames: int, spp: int, camera: str = "orbit",
                  inserts: str = "none", log: Callable[[str], None] | None = None,
                  insert_mesh: str | None = None) -> Path:
-    """The recording of scene `kind` with these settings in `cache` (folder named after them), rendered
-    into a .partial folder and renamed when missing, so an interrupted run leaves no half scene behind.
+    """The recording of scene `kind` with these settings in `cache` (folder named after them), rendered when missing
+    (photoreg.synth.generate renders into a .partial folder and renames it: an interrupted run leaves no half scene).
     `insert_mesh`: a mesh file inserted instead of the cube (`photoreg synth --insert-mesh`; with inserts only)."""
     from ..synth.generate import SynthConfig, generate
 
@@ -28,12 +27,6 @@ def cached_scene(cache: Path, kind: str, width: int, height: int, frames: int, s
             raise FileExistsError(f"{folder}: incomplete scene cache (no lighting_gt.json); remove it")
         if log:
             log(f"generating {kind} ({width}x{height}, {frames} frames, {camera} camera) into {folder}")
-        tmp = folder.with_name(folder.name + ".partial")
-        if tmp.exists():
-            shutil.rmtree(tmp)
-        generate(SynthConfig(scene=kind, out=str(tmp), frames=frames, width=width, height=height, spp=spp,
-                             camera=camera, insert_frames=inserts, insert_mesh=insert_mesh), log=None)
-        if folder.exists():
-            folder.rmdir()
-        tmp.rename(folder)
+        generate(SynthConfig(scene=kind, out=str(folder), frames=frames, width=width, height=height, spp=spp,
+                             camera=camera, insert_frames=inserts, insert_mesh=insert_mesh), log=None)   # via .partial
     return folder

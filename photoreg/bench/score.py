@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import json
 import math
+from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -26,6 +27,7 @@ from scipy.spatial.transform import Rotation
 
 from ..io.atomic import write_json
 from ..io.images import read_exr, read_rgb, srgb_to_linear
+from ..config import parse_frames
 from ..io.recording import Recording, detect_format, open_recording
 from ..lighting import sh
 from . import metrics
@@ -150,11 +152,11 @@ def color_files(recording: str | Path) -> list[Path]:
     return [] if rec is None else rec.color_files
 
 
-def score_lighting(estimates: dict[int, np.ndarray], gt: np.ndarray, n_expected: int = 0,
+def score_lighting(estimates: dict[int, np.ndarray], gt: np.ndarray, expected: Iterable[int] = (),
                    lights: dict[int, list | None] | None = None, sun: dict | None = None) -> dict:
-    """Per-frame lighting metrics and their summaries; frames 0..n_expected-1 missing count as non-finite. With the
+    """Per-frame lighting metrics and their summaries; `expected` frames missing count as non-finite. With the
     run's traced lights (load_lighting) and the true sun (true_light), light_direction_deg too."""
-    frames = sorted(set(estimates) | set(range(n_expected)))
+    frames = sorted(set(estimates) | set(expected))
     per_frame, notes = [], []
     n_missing = n_nonfinite = n_no_dir = n_no_light = 0
     for i in frames:
@@ -187,7 +189,7 @@ def score_lighting(estimates: dict[int, np.ndarray], gt: np.ndarray, n_expected:
         notes.append(f"{n_no_light} frame(s) without a traced light: its direction error counted as "
                      f"{metrics.NO_DIRECTION_DEG:g} deg")
     if n_missing:
-        notes.append(f"{n_missing} frame(s) of the recording have no line in lighting.jsonl")
+        notes.append(f"{n_missing} frame(s) the run selected have no line in lighting.jsonl")
     n_bad = n_missing + n_nonfinite
     est_bands = sorted({sh.bands_of(e.shape[1]) for e in estimates.values()})
     return {"n_frames": len(frames), "n_scored": len(frames) - n_bad, "n_nonfinite": n_nonfinite,
@@ -285,6 +287,16 @@ def composite_flicker(out: str | Path, recording: str | Path) -> dict | None:
             "composite": metrics.image_flicker(comps, region), "camera": metrics.image_flicker(cams, region)}
 
 
+def selected_frames(out: str | Path, n: int) -> list[int]:
+    """The frames of an n-frame recording the run in `out` was asked for (summary.json's settings.frames, as --frames
+    gives them; every frame where it does not say)."""
+    try:
+        spec = json.loads((Path(out) / "summary.json").read_text())["settings"]["frames"]
+        return parse_frames(spec, n)
+    except (OSError, ValueError, KeyError, TypeError):
+        return list(range(n))
+
+
 def tracked_to_world(out: str | Path, recording: str | Path,
                      poses: dict[int, list | None]) -> tuple[np.ndarray, int] | None:
     """For a run that tracked the camera (summary.json: use_poses false), whose world is its first tracked camera's
@@ -317,7 +329,8 @@ def score(out: str | Path, recording: str | Path, composite: bool = False) -> di
         estimates = {i: sh.rotate(e, R) for i, e in estimates.items()}
         lights = {i: None if d is None else (R @ np.asarray(d, np.float64)).tolist() for i, d in lights.items()}
     result = {"out": str(out), "recording": str(recording),
-              "lighting": score_lighting(estimates, gt, len(color_files(recording)), lights, sun)}
+              "lighting": score_lighting(estimates, gt, selected_frames(out, len(color_files(recording))), lights,
+                                         sun)}
     if turn is not None:
         result["lighting"]["notes"].append(f"a tracked run (--no-poses): its lighting turned into the recording's "
                                            f"world by frame {anchor}'s recorded and tracked poses")

@@ -10,7 +10,9 @@ from __future__ import annotations
 
 import importlib.metadata
 import json
+import os
 import shlex
+import shutil
 import time
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
@@ -208,12 +210,18 @@ def rerender_inserts(recording: str | Path) -> dict[int, np.ndarray]:
 
 
 def generate(cfg: SynthConfig, log: Callable[[str], None] | None = print) -> Path:
-    """Render the recording described by `cfg` into cfg.out (which must be absent or empty); returns its path."""
+    """Render the recording described by `cfg` into cfg.out (which must be absent or empty); returns its path. It is
+    written into OUT.partial and renamed when whole, so an interrupted run leaves no folder that passes for a
+    recording (a later run starts OUT.partial again)."""
     cfg.validate()
-    out = Path(cfg.out)
-    if out.exists() and (not out.is_dir() or any(out.iterdir())):
-        raise ValueError(f"--out {out}: exists and is not an empty folder; remove it or choose another")
+    final = Path(cfg.out)
+    if final.exists() and (not final.is_dir() or any(final.iterdir())):
+        raise ValueError(f"--out {final}: exists and is not an empty folder; remove it or choose another")
     say = log or (lambda _msg: None)
+    out = final.with_name(final.name + ".partial")
+    if out.exists():
+        say(f"removing {out}, an interrupted run's")
+        shutil.rmtree(out)
     t_start = time.perf_counter()
     mi = mitsuba()
     layout, env_image, env_desc, rotation, K, poses = _world(cfg)
@@ -290,10 +298,13 @@ def generate(cfg: SynthConfig, log: Callable[[str], None] | None = print) -> Pat
                                                          else ""))},
                    "images": "insert/NNNNNN.png (sRGB) and .exr (linear, exposure applied); insert_mask/ 255 = virtual object"},
     })
+    if final.exists():
+        final.rmdir()   # empty, checked above
+    os.replace(out, final)
     total = time.perf_counter() - t_start
-    say(f"wrote {cfg.frames} frames to {out} in {total:.1f} s ({np.mean(per_frame):.2f} s/frame, "
+    say(f"wrote {cfg.frames} frames to {final} in {total:.1f} s ({np.mean(per_frame):.2f} s/frame, "
         f"{mi.variant()}, exposure {exposure:.4g})")
-    return out
+    return final
 
 
 def synth_command(args) -> int:

@@ -167,18 +167,32 @@ def train_mesh(mesh_path: str | Path, vertices: np.ndarray, faces: np.ndarray,
 
 
 def train_command(args) -> int:
-    """`photoreg train neural_soft SESSION.toml`: train (or find cached) weights for every object."""
+    """`photoreg train neural_soft SESSION.toml`: train (or find cached) weights for every object's mesh, once per
+    mesh; with --out, each mesh's weights end up in that folder (found ones copied there)."""
+    import shutil
+
     from photoreg.config import load_session
     from photoreg.render.neural_soft_weights import find_weights
     from photoreg.render.scene import load_scene
 
+    out = Path(args.out) if args.out else None
+    if out is not None and out.exists() and not out.is_dir():
+        raise NotADirectoryError(f"{out} (--out) is a file, not a folder")
     session = load_session(args.session)
     settings = NeuralSoftSettings()
+    done: set[str] = set()
     for obj in load_scene(session.objects).objects:
-        found = find_weights(weights_key(obj.source, settings))
-        if found and not args.force:
-            print(f"{obj.source}: weights cached at {found}")
+        key = weights_key(obj.source, settings)
+        if key in done:   # another object of the same mesh
             continue
-        out = Path(args.out) if args.out else None
+        done.add(key)
+        found = find_weights(key)
+        if found and not args.force:
+            if out is not None and found.parent.resolve() != out.resolve():
+                out.mkdir(parents=True, exist_ok=True)
+                shutil.copyfile(found, out / found.name)
+                found = out / found.name
+            print(f"{obj.source}: weights at {found}")
+            continue
         print(f"{obj.source}: {train_mesh(obj.source, obj.local_vertices(), obj.faces, settings, out)}")
     return 0
