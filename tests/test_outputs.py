@@ -254,7 +254,7 @@ def test_cli_names_the_file_it_cannot_write(tmp_path, capsys):
 
 
 def test_ctrl_c_ends_a_command_without_a_traceback(tmp_path, monkeypatch, capsys):
-    """Ctrl-C during any command (here as the run's frames raise it) exits with status 130 and one line, no traceback."""
+    """Ctrl-C during any command (here as the run's frames raise it): status 130 and one line, no traceback."""
     from photoreg.cli import main
     from photoreg.pipeline import Pipeline
 
