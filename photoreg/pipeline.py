@@ -27,7 +27,7 @@ from contextlib import contextmanager
 import numpy as np
 
 from .config import Session
-from .device import init_warp, keep_frame_memory, resolve_device
+from .device import exit_with_parent, init_warp, keep_frame_memory, resolve_device
 from .kernels.raycast import raycast_surface
 from .kernels.samples import AGREES, CANDIDATE, CLIPPED, sample_maps
 from .kernels.transfer import make_direction_set, radiance_transfer, visibility
@@ -52,7 +52,7 @@ GAIN_STRIDE = 4       # ... ray cast up to this stride where nothing else needs 
 def _solve_process() -> futures.ProcessPoolExecutor:
     """A child process for the asynchronous worker's robust solves (lighting.solve_process), spawned (a fork would
     copy the CUDA context) and its imports done now, so the first estimate does not wait for them."""
-    pool = futures.ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn"))
+    pool = futures.ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn"), initializer=exit_with_parent)
     try:
         pool.submit(exec, "import photoreg.lighting.robust").result()
     except futures.BrokenExecutor as e:   # the child died starting (its own traceback is on stderr)

@@ -666,6 +666,38 @@ def test_a_server_that_stops_answering_costs_no_reply_already_received(recording
     assert summary["frames_processed"] >= 1 and summary["stopped"] == "no reply from the server within 2 s"
 
 
+def _ended(pid: int) -> bool:
+    """The process is gone or a zombie (its new parent may not reap it)."""
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] == "Z"
+    except FileNotFoundError:
+        return True
+
+
+@pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="needs /proc (Linux) to watch the worker")
+def test_a_pool_worker_ends_with_its_killed_parent(tmp_path):
+    """A parent killed with SIGKILL (a server, a batch, a pipeline's solve process's owner) tells its pool's workers
+    nothing; with exit_with_parent as the initializer the worker ends within seconds (before, a server's connection
+    processes lived on, 1.2 GB, waiting on its pipe)."""
+    script = tmp_path / "parent.py"
+    script.write_text("import multiprocessing as mp, os, time\n"
+                      "from concurrent.futures import ProcessPoolExecutor\n"
+                      "from photoreg.device import exit_with_parent\n"
+                      "if __name__ == '__main__':\n"
+                      "    spawn = mp.get_context('spawn')\n"
+                      "    pool = ProcessPoolExecutor(1, mp_context=spawn, initializer=exit_with_parent)\n"
+                      "    print(pool.submit(os.getpid).result(), flush=True)\n"
+                      "    time.sleep(600)\n")
+    parent = subprocess.Popen([sys.executable, str(script)], stdout=subprocess.PIPE, text=True)
+    worker = int(parent.stdout.readline())
+    parent.kill()
+    parent.wait()
+    deadline = time.monotonic() + 15.0
+    while not _ended(worker) and time.monotonic() < deadline:
+        time.sleep(0.2)
+    assert _ended(worker), "the pool's worker outlived its killed parent"
+
+
 def test_four_concurrent_clients(server, recording, tmp_path):
     results: dict[int, tuple] = {}
 

@@ -18,6 +18,7 @@ import queue
 import sys
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 
+from ..device import exit_with_parent
 from .runner import BatchProgress, SessionTask, failed_result, run_one
 
 _progress_queue = None  # set in each worker process by _init_worker
@@ -33,6 +34,7 @@ def _init_worker(q, cpu_threads: int) -> None:
     global _progress_queue
     _progress_queue = q
     os.environ.setdefault("PHOTOREG_CPU_THREADS", str(cpu_threads))
+    exit_with_parent()   # a batch killed with SIGKILL leaves no worker waiting for ever
 
 
 def cpu_share(workers: int) -> int:

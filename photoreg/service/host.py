@@ -18,6 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..config import Session
+from ..device import exit_with_parent
 from ..io.images import linear_to_srgb
 from ..pipeline import Pipeline
 from ..runner import result_record
@@ -32,8 +33,9 @@ _local = threading.local()
 def _child_start() -> None:
     """A connection's process ignores SIGINT: Ctrl-C in a terminal reaches the whole process group, and the
     server's own handler finishes the frames in work and closes the pipelines (a child stopped mid-frame
-    would answer nothing)."""
+    would answer nothing). It ends when the server is gone (exit_with_parent)."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    exit_with_parent()
 
 
 def _warm_here(device: str) -> None:
