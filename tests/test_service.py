@@ -6,6 +6,7 @@ from __future__ import annotations
 import dataclasses
 import gc
 import json
+import logging
 import multiprocessing
 import os
 import re
@@ -37,7 +38,7 @@ from photoreg.service.client import Client, ServiceClosed, connect, encoded_ahea
 from photoreg.service.protocol import (CLIENT_TYPES, ERROR_CODES, Limits, ProtocolError, composite_message, decode,
                                        decode_composite, decode_frame, encode, encode_composite, encode_frame,
                                        hello_message, lighting_message, parse_hello, ready_message,
-                                       record_from_lighting)
+                                       record_from_lighting, token_option)
 from photoreg.service.server import ServerConfig, ServerThread
 from photoreg.types import Frame, Intrinsics
 from scenes import write_recording
@@ -130,11 +131,26 @@ def test_text_messages_round_trip():
     assert record_from_lighting(msg) == record
 
 
+def test_an_empty_token_is_refused_and_the_environment_s_is_the_default(monkeypatch):
+    """An empty --token (or PHOTOREG_TOKEN) is refused, not read as 'no token' or as 'take the environment's'."""
+    monkeypatch.setenv("PHOTOREG_TOKEN", "from-env")
+    assert token_option(None) == "from-env" and token_option("given") == "given"
+    with pytest.raises(ValueError, match="--token is empty"):
+        token_option("")
+    monkeypatch.setenv("PHOTOREG_TOKEN", " ")
+    with pytest.raises(ValueError, match="PHOTOREG_TOKEN is empty"):
+        token_option(None)
+    monkeypatch.delenv("PHOTOREG_TOKEN")
+    assert token_option(None) is None
+    assert main(["serve", "--port", "0", "--token", ""]) == 2
+
+
 def test_objects_name_meshes_in_the_server_s_folder(tmp_path):
     """An object's mesh is a file name in the server's mesh folder, never a path; no folder, no objects."""
     (tmp_path / "meshes").mkdir()
     (tmp_path / "meshes" / "bunny.obj").write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n")
     (tmp_path / "secret.obj").write_text("v 0 0 0\n")
+    (tmp_path / "meshes" / "README.md").write_text("not a mesh: left out of the list of meshes")
     obj = {"mesh": "bunny.obj", "position": [0, 0, 0], "rotation": [0, 0, 90], "scale": 0.1, "albedo": [0.8, 0.8, 0.8]}
 
     def hello(mesh, meshes=tmp_path / "meshes", **extra):
@@ -152,7 +168,7 @@ def test_objects_name_meshes_in_the_server_s_folder(tmp_path):
     assert ready_message(parse_hello(hello_message(K, OPTIONS), "cpu", Limits()), "cpu", 2, Limits())[
         "compositing"] is False
     for mesh, says in (("../secret.obj", "file name"), (str(tmp_path / "secret.obj"), "file name"),
-                       (".hidden", "file name"), ("rabbit.obj", "it has: bunny.obj")):
+                       (".hidden", "file name"), ("rabbit.obj", "it has: bunny.obj)")):
         with pytest.raises(ProtocolError, match=re.escape(says)) as e:
             hello(mesh)
         assert e.value.code == "bad_field" and "objects[0].mesh" in e.value.message
@@ -173,6 +189,19 @@ def test_objects_name_meshes_in_the_server_s_folder(tmp_path):
         hello("bunny.obj", composite="gif")
     with pytest.raises(ValueError, match="not a folder"):
         ServerConfig(meshes=str(tmp_path / "missing"))
+
+
+def test_a_mesh_that_does_not_load_is_named_without_the_server_s_folder(tmp_path):
+    """A mesh in the server's folder that its pipeline cannot load: the client's error names the mesh, not where
+    the server keeps it."""
+    (tmp_path / "flat.obj").write_text("v 0 0 0\nv 1 0 0\n")   # no faces
+    obj = {"mesh": "flat.obj", "position": [0, 0, 1], "rotation": [0, 0, 0], "scale": 0.1, "albedo": [0.8, 0.8, 0.8]}
+    with ServerThread(ServerConfig(port=0, device="cpu", meshes=str(tmp_path), processes=False)) as running:
+        with ws_connect(running.server.url, compression=None) as ws:
+            ws.send(encode(hello_message(K, {**OPTIONS, "objects": [obj]})))
+            reply = json.loads(ws.recv(60))
+    assert reply["type"] == "error" and reply["code"] == "pipeline", reply
+    assert "flat.obj" in reply["message"] and str(tmp_path) not in reply["message"], reply
 
 
 def test_composite_messages_round_trip():
@@ -664,6 +693,37 @@ def test_a_server_that_stops_answering_costs_no_reply_already_received(recording
                          {"lighting": {"rays": 16, "bands": 2, "stride": 4}})
         summary = replay(client, list(open_recording(recording))[:3], window=1, reply_timeout=2.0)
     assert summary["frames_processed"] >= 1 and summary["stopped"] == "no reply from the server within 2 s"
+
+
+def test_a_stalled_server_ends_the_stream_in_one_line(monkeypatch, caplog):
+    """A server whose event loop stops (SIGSTOP, a hung host) answers no keepalive ping: the client ends with a
+    ServiceClosed that says so, and websockets' traceback of the failed ping stays off the terminal."""
+    import asyncio
+    import queue
+
+    from websockets.asyncio.server import serve
+
+    from photoreg.service import client as client_module
+
+    async def stalls(ws):
+        await ws.recv()
+        await ws.send(json.dumps({"type": "ready"}))
+        time.sleep(6.0)   # blocks the server's loop: no pong, nor a close frame within the client's 5 s
+
+    async def run(port: queue.Queue):
+        async with serve(stalls, "127.0.0.1", 0) as server:
+            port.put(server.sockets[0].getsockname()[1])
+            await asyncio.sleep(8.0)
+
+    port: queue.Queue = queue.Queue()
+    threading.Thread(target=asyncio.run, args=(run(port),), daemon=True).start()
+    monkeypatch.setattr(client_module, "KEEPALIVE_S", 0.3)
+    c = connect(f"ws://127.0.0.1:{port.get(timeout=10)}", K, OPTIONS)
+    with pytest.raises(ServiceClosed, match="answered no keepalive ping within 0.3 s"):
+        c.recv(10)
+    c.ws.keepalive_thread.join(10)   # where websockets logged its traceback
+    c.close()
+    assert not [r.getMessage() for r in caplog.records if r.levelno >= logging.WARNING]
 
 
 def _ended(pid: int) -> bool:

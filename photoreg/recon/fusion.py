@@ -141,12 +141,12 @@ class TSDFVolume:
         lo, hi = own
         if self._pending_bounds is not None:
             lo, hi = np.minimum(lo, self._pending_bounds[0]), np.maximum(hi, self._pending_bounds[1])
-        n_vox = self._brick(lo, hi)[2]
+        new_lo, new_hi, n_vox = self._brick(lo, hi)
         if n_vox > self.cfg.max_dense_voxels:
             self.rejected_in_row += 1
             alone = math.prod(int(d) * self.cfg.block_resolution for d in own[1] - own[0] + 1)
             if self.rejected_in_row < RESTART_AFTER or alone > self.cfg.max_dense_voxels:
-                raise VolumeLimitError(f"{self._limit_message(n_vox, hi - lo + 1)}; the frame (camera at "
+                raise VolumeLimitError(f"{self._limit_message(n_vox, new_hi - new_lo + 1)}; the frame (camera at "
                                        f"{np.round(np.asarray(pose_c2w)[:3, 3], 3).tolist()} m) was not fused")
             self._start()   # RESTART_AFTER frames in a row did not fit: this one starts the volume again
             self.restarts += 1

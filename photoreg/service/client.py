@@ -9,6 +9,7 @@ lighting records (and the composites of a session with objects); `photoreg strea
 from __future__ import annotations
 
 import json
+import logging
 import os
 import signal
 import sys
@@ -27,7 +28,14 @@ from ..io.ahead import Ahead
 from ..io.atomic import atomic_path, write_json
 from ..types import Frame, Intrinsics
 from .protocol import (CLIENT_RECONSTRUCTION_KEYS, ProtocolError, decode, decode_composite, encode, encode_frame,
-                       hello_message, record_from_lighting)
+                       hello_message, record_from_lighting, token_option)
+
+
+# The connection's own log: websockets logs a stalled server's missed keepalive ping as a traceback; the client
+# reports the connection's end itself (ServiceClosed), so only its critical records would be worth printing.
+QUIET = logging.getLogger("photoreg.stream.websocket")
+QUIET.setLevel(logging.CRITICAL)
+KEEPALIVE_S = 20.0   # a ping this often, and the connection ends when one is not answered within as long
 
 
 class ServiceClosed(RuntimeError):
@@ -110,7 +118,10 @@ class Client:
         self.close()
 
     def _closed(self, e: ConnectionClosed) -> ServiceClosed:
-        rcvd = e.rcvd
+        rcvd, sent = e.rcvd, e.sent
+        if rcvd is None and sent is not None and sent.reason == "keepalive ping timeout":
+            return ServiceClosed(None, f"no close frame: the server answered no keepalive ping within "
+                                       f"{self.ws.ping_timeout:g} s")
         return ServiceClosed(rcvd.code if rcvd else None, rcvd.reason if rcvd else "no close frame")
 
 
@@ -121,7 +132,8 @@ def connect(url: str, intrinsics: Intrinsics, options: dict | None = None, token
     jpeg when None), wait for ready. An error reply raises ProtocolError."""
     try:
         # Entered, not called: the way to keep a connection across websockets versions; Client.close() closes it.
-        ws = ws_connect(url, open_timeout=timeout, max_size=64 * 2**20, compression=None, close_timeout=5).__enter__()
+        ws = ws_connect(url, open_timeout=timeout, max_size=64 * 2**20, compression=None, close_timeout=5,
+                        ping_interval=KEEPALIVE_S, ping_timeout=KEEPALIVE_S, logger=QUIET).__enter__()
     except (OSError, InvalidURI, InvalidHandshake, TimeoutError) as e:
         raise RuntimeError(f"{url}: cannot connect to a photoreg server ({e})") from None
     client = Client(ws, {})
@@ -309,7 +321,7 @@ def stream_command(args) -> int:
     skipped: list[dict] = []
     progress = Progress(len(indices), args.quiet)
     t_hello = time.perf_counter()
-    client = connect(args.url, rec.intrinsics, options, args.token or os.environ.get("PHOTOREG_TOKEN"),
+    client = connect(args.url, rec.intrinsics, options, token_option(args.token),
                      composite=args.composite)
     hello_ms = round((time.perf_counter() - t_hello) * 1000.0, 1)   # connect, hello, ready
     frames = ReadAhead(rec, indices, on_error=lambda i, msg: skipped.append({"frame": i, "error": msg}),

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import re
 import struct
 from dataclasses import dataclass, field
@@ -35,6 +36,7 @@ COLOR_ENCODINGS = ("jpeg", "png", "rgb8")    # rgb8: H*W*3 bytes, row-major, R G
 DEPTH_ENCODINGS = ("png16", "u16", "f32")    # u16: little-endian depth_scale units; f32: little-endian metres
 COMPOSITE_ENCODINGS = ("jpeg", "png")        # of the composites the server sends (8-bit sRGB); jpeg the default
 JPEG_QUALITY = 90
+MESH_SUFFIXES = (".ply", ".obj", ".off", ".glb", ".gltf", ".stl")   # what the meshes folder lists as its meshes
 ERROR_CODES = ("bad_message", "unknown_type", "missing_field", "bad_field", "bad_image", "too_large", "version",
                "not_ready", "already_ready", "unauthorized", "too_many_clients", "pipeline", "idle_timeout",
                "shutting_down", "internal")
@@ -134,6 +136,14 @@ def decode(data: str | bytes) -> tuple[dict, memoryview]:
         raise ProtocolError("missing_field" if kind is None else "bad_field",
                             "message needs a string field 'type'")
     return header, payload
+
+
+def token_option(given: str | None) -> str | None:
+    """The token of --token, else $PHOTOREG_TOKEN, else none; an empty one is refused (it would turn the check off)."""
+    token, where = (given, "--token") if given is not None else (os.environ.get("PHOTOREG_TOKEN"), "PHOTOREG_TOKEN")
+    if token is not None and not token.strip():
+        raise ValueError(f"{where} is empty: give a token, or leave it unset for none")
+    return token
 
 
 # ---------------------------------------------------------------------------------------------- builders
@@ -321,7 +331,8 @@ def resolve_mesh(name: str, meshes: Path | None, where: str) -> str:
                                          f"got {name!r:.80}")
     path = Path(meshes) / name
     if not path.is_file():
-        known = sorted(p.name for p in Path(meshes).iterdir() if p.is_file() and not p.name.startswith("."))
+        known = sorted(p.name for p in Path(meshes).iterdir()
+                       if p.is_file() and not p.name.startswith(".") and p.suffix.lower() in MESH_SUFFIXES)
         raise ProtocolError("bad_field", f"{where}: no mesh {name!r:.80} on this server (it has: "
                                          f"{', '.join(known[:20]) or 'none'}{', ...' if len(known) > 20 else ''})")
     return str(path)

@@ -18,7 +18,6 @@ import collections
 import hmac
 import ipaddress
 import logging
-import os
 import signal
 import threading
 import time
@@ -36,7 +35,8 @@ from ..device import resolve_device
 from ..types import Frame, Intrinsics
 from .host import CompositePatch, PipelineHost
 from .protocol import (CLIENT_TYPES, Limits, ProtocolError, bye_message, composite_message, decode, decode_frame,
-                       encode, encode_composite, error_message, lighting_message, parse_hello, ready_message)
+                       encode, encode_composite, error_message, lighting_message, parse_hello, ready_message,
+                       token_option)
 
 log = logging.getLogger("photoreg.serve")
 COUNTS = ("received", "processed", "dropped", "cancelled", "errors")   # frames, per connection and in total
@@ -259,7 +259,8 @@ class Connection:
             log.exception("%s: could not start a pipeline", self.peer)
             host, self.host = self.host, None
             await asyncio.to_thread(host.close)
-            raise ProtocolError("pipeline", f"could not start the pipeline: {e}") from None
+            text = str(e) if self.cfg.meshes is None else str(e).replace(f"{Path(self.cfg.meshes)}/", "")
+            raise ProtocolError("pipeline", f"could not start the pipeline: {text}") from None   # no server paths
         try:   # the session is live once the client has its ready
             await self._send(ready_message(hello, self.server.device, self.cfg.queue, self.cfg.limits))
         except Exception:
@@ -545,7 +546,7 @@ def serve_command(args) -> int:
     logging.basicConfig(level=logging.INFO, format="%(asctime)s photoreg serve: %(message)s")
     logging.getLogger("websockets").setLevel(logging.WARNING)   # our own lines say who came and went
     cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_ERROR)   # clients' corrupt images get error replies
-    config = ServerConfig(host=args.host, port=args.port, token=args.token or os.environ.get("PHOTOREG_TOKEN"),
+    config = ServerConfig(host=args.host, port=args.port, token=token_option(args.token),
                           device=args.device, max_clients=args.max_clients, queue=args.queue,
                           idle_timeout=args.idle_timeout, meshes=args.meshes, processes=not args.threads,
                           limits=Limits(max_message_bytes=int(args.max_message_mb * 2**20)))
