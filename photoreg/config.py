@@ -269,8 +269,10 @@ def _check_object(obj: ObjectConfig, where: str) -> None:
         raise ValueError(f"{where}: objects.mesh is required")
 
 
-def load_session(path: str | Path) -> Session:
-    """Parse and validate a session file; paths are resolved against its folder."""
+def load_session(path: str | Path, files: bool = True) -> Session:
+    """Parse and validate a session file; paths are resolved against its folder. files=False: the recording, meshes
+    and output folder are kept as written and not looked for (a client asking a server, which has its own, for what
+    the session does)."""
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"{path}: session file not found")
@@ -297,15 +299,17 @@ def load_session(path: str | Path) -> Session:
                              f"(known: {', '.join(sorted([*sections, 'objects', 'device', 'frames']))})")
     if not s.recording.path:
         raise ValueError(f"{where}: key 'recording.path' is required")
-    s.recording.path = str(resolve_path(s.recording.path, base, f"{where}: recording.path"))
-    if not Path(s.recording.path).exists():
-        raise FileNotFoundError(f"{where}: recording.path {s.recording.path} does not exist")
     for obj in s.objects:
         _check_object(obj, where)
-        obj.mesh = str(resolve_path(obj.mesh, base, f"{where}: objects.mesh"))
-        if not Path(obj.mesh).is_file():
-            raise FileNotFoundError(f"{where}: objects.mesh {obj.mesh} does not exist")
-    s.output.dir = str(resolve_path(s.output.dir, base, f"{where}: output.dir"))
+    if files:
+        s.recording.path = str(resolve_path(s.recording.path, base, f"{where}: recording.path"))
+        if not Path(s.recording.path).exists():
+            raise FileNotFoundError(f"{where}: recording.path {s.recording.path} does not exist")
+        for obj in s.objects:
+            obj.mesh = str(resolve_path(obj.mesh, base, f"{where}: objects.mesh"))
+            if not Path(obj.mesh).is_file():
+                raise FileNotFoundError(f"{where}: objects.mesh {obj.mesh} does not exist")
+        s.output.dir = str(resolve_path(s.output.dir, base, f"{where}: output.dir"))
     validate(s)
     return s
 

@@ -76,10 +76,11 @@ def test_fronts_per_series_and_merge_keeps_other_rows(tmp_path):
 # --- the sweep end to end --------------------------------------------------------------------------
 
 def test_sweep_writes_rows_and_plot(tmp_path, capsys):
-    """A 2 x 1 x 2 x 1 grid on a tiny analytic recording with exact ground truth (tests/scenes.py)."""
+    """A 2 x 1 x 2 x 1 grid on a tiny analytic recording with exact ground truth (tests/scenes.py), more frames asked
+    for than it has."""
     rec = write_recording(tmp_path / "rec", K80, 5)
     csv_path, plot = tmp_path / "out" / "speed_error.csv", tmp_path / "out" / "speed_error.png"
-    assert main(["bench", "sweep", "--recordings", str(rec), "--frames", "5", "--warmup", "2", "--strides", "2,4",
+    assert main(["bench", "sweep", "--recordings", str(rec), "--frames", "9", "--warmup", "2", "--strides", "2,4",
                  "--rays", "16", "--bands", "2,3", "--voxel-sizes", "0.02", "--device", "cpu", "--threads", "2",
                  "--csv", str(csv_path), "--plot", str(plot)]) == 0
     with csv_path.open() as f:
@@ -89,6 +90,7 @@ def test_sweep_writes_rows_and_plot(tmp_path, capsys):
     assert len({tuple(r[k] for k in KEY) for r in rows}) == 4
     for r in rows:
         assert r["device"] == "cpu" and r["threads"] == "2" and r["size"] == "80x60" and r["frames_timed"] == "3"
+        assert r["frames"] == "5"   # the recording's 5 frames, not the 9 asked for
         ms = {s: float(r[f"ms_{s}"]) for s in STAGES}
         assert all(v >= 0 for v in ms.values()) and ms["transfer"] > 0
         assert sum(v for s, v in ms.items() if s != "total") <= ms["total"] + 1e-6

@@ -180,6 +180,11 @@ def test_objects_name_meshes_in_the_server_s_folder(tmp_path):
                        f'mesh = "{tmp_path / "meshes" / "bunny.obj"}"\nalbedo = "texture"\nsmooth = true\n')
     sent = session_options(session)["objects"][0]
     assert (sent["mesh"], sent["albedo"], sent["smooth"]) == ("bunny.obj", "texture", True)
+    elsewhere = tmp_path / "elsewhere.toml"   # written on the server's machine: its paths are not the client's
+    elsewhere.write_text('[recording]\npath = "$SERVER_DATA/rec"\n\n[[objects]]\nmesh = "/srv/meshes/teapot.obj"\n')
+    assert session_options(elsewhere)["objects"][0]["mesh"] == "teapot.obj"
+    with pytest.raises(ValueError, match="SERVER_DATA"):
+        load_session(elsewhere)
     with pytest.raises(ProtocolError, match="albedo") as e:
         parse_hello(hello_message(K, {"objects": [{**obj, "albedo": "wood"}]}), "cpu", Limits(), tmp_path / "meshes")
     assert e.value.code == "bad_field"

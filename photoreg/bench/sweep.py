@@ -134,7 +134,8 @@ def run_sweep(recordings, settings: list[Setting], device: str = "auto", frames:
     common = {"device": resolved, "device_name": device_name(resolved),
               "threads": _threads_used(resolved), "size": "+".join(dict.fromkeys(
                   f"{rec.intrinsics.width}x{rec.intrinsics.height}" for _, rec, _ in recs)),
-              "scenes": "+".join(p.name for p, _, _ in recs), "frames": frames, "warp": wp.__version__,
+              "scenes": "+".join(p.name for p, _, _ in recs),
+              "frames": "+".join(str(min(frames, len(rec))) for _, rec, _ in recs), "warp": wp.__version__,
               "open3d": o3d.__version__, "fusion_on": fusion_on,
               "date": datetime.now(timezone.utc).strftime("%Y-%m-%dT%H:%MZ")}
     rows = []

@@ -277,7 +277,7 @@ def session_options(path: str | Path) -> dict:
     (the server looks it up in its --meshes folder)."""
     from ..config import load_session
 
-    s = load_session(path)
+    s = load_session(path, files=False)   # the server has the meshes; the recording is the command's
     options = {"lighting": dict(vars(s.lighting)), "render": dict(vars(s.render)),
                "reconstruction": {k: getattr(s.reconstruction, k) for k in CLIENT_RECONSTRUCTION_KEYS}}
     if s.objects:
