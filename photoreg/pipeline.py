@@ -290,11 +290,12 @@ class Pipeline:
                 split = None if data is current else len(current)
                 joint = self._solve(data, previous, terms, grid, sun, start=own if split is None else None,
                                     current=split)
-            if self.sun.stale(joint.diagnostics.residual_rms) and not alone:
-                self.sun.recheck()
-                return self._lighting(grid, current, data, previous, t)
-            if joint.terms["sun"] @ sh.LUMINANCE > 0:
-                return sun, joint, own
+            if "sun" in joint.terms:   # else no sample to fit it on (a black frame without a history)
+                if self.sun.stale(joint.diagnostics.residual_rms) and not alone:
+                    self.sun.recheck()
+                    return self._lighting(grid, current, data, previous, t)
+                if joint.terms["sun"] @ sh.LUMINANCE > 0:
+                    return sun, joint, own
             sun = None
         if data is current:
             return sun, own, own
@@ -334,21 +335,25 @@ class Pipeline:
             if "bounce_observed" in sol.terms:
                 diag.bounce_observed = np.round(sol.terms["bounce_observed"], 5).tolist()
             diag.exposure_gain, diag.estimated_frame = gain, index
+            # the current view's samples its own solve fitted; without an own solve those the solve of the current
+            # and kept samples fitted (the current view's rows come first; every usable sample instead cost TUM's
+            # held-out residual 0.226 -> 0.238)
+            fit = own if own is not None else sol
+            rows = (np.zeros(0, dtype=np.int64) if fit.samples is None else
+                    fit.samples[(fit.samples < len(current)) & (fit.weights > 0)])
+            enough = rows.size >= self.solver_cfg.min_samples_factor * self.solver_cfg.fit_bands ** 2
             new_view = False   # whether the history took this frame's samples as a new view
-            if self.history is not None:  # keep the view's samples its own solve fitted, if enough
-                # without an own solve: those the solve of the current and kept samples fitted (the current
-                # view's rows come first; every usable sample instead cost TUM's held-out residual 0.226 -> 0.238)
-                fit = own if own is not None else sol
-                rows = (np.zeros(0, dtype=np.int64) if fit.samples is None else
-                        fit.samples[(fit.samples < len(current)) & (fit.weights > 0)])
-                cfg = self.solver_cfg
-                if rows.size >= cfg.min_samples_factor * cfg.fit_bands ** 2:
-                    new_view = self.history.add(current.take(rows), pose)
-                elif data is not current:  # a black, saturated or hole-ridden view
-                    diag.weak = True
-                    diag.notes.append("too few usable samples in this view: the lighting rests on earlier "
-                                      "views' samples")
-            if self.filter is not None:
+            if self.history is not None and enough:
+                new_view = self.history.add(current.take(rows), pose)
+            elif self.history is not None and data is not current:  # a black, saturated or hole-ridden view
+                diag.weak = True
+                diag.notes.append("too few usable samples in this view: the lighting rests on earlier views' samples")
+            if self.filter is not None and not enough and self.filter.prediction() is None:
+                # the first filtered estimate is every later solve's reference, whose colour balance fixes their
+                # albedo scale: a frame with a patch of depth started it and left the demo's later frames 29% dark
+                diag.weak = True
+                diag.notes.append("too few usable samples to start the temporal filter on: this frame's own estimate")
+            elif self.filter is not None:
                 filtered, diag.change_detected = self.filter.update(sol, new_view)
                 # the filter weighs the channels apart: a white-mode light is one colour again
                 F = Lighting(sh.one_chroma(filtered) if lc.mode == "white" else filtered)

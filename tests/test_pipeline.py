@@ -315,6 +315,46 @@ def test_the_renderers_draw_the_traced_light_filtered():
     assert step(drawn) < 0.4 * step(own), (step(drawn), step(own))
 
 
+def _demo_lighting(frames: int, change=None) -> list:
+    """The demo's first `frames` frames through its session's pipeline without its object, frame i changed by
+    change(i, frame) where given; their FrameResults."""
+    s = load_session(REPO / "data" / "demo" / "session.toml")
+    s.device, s.objects = "cpu", []
+    rec = open_recording(s.recording.path, fmt=s.recording.format)
+    pipe = pipeline_module.Pipeline(s, rec.intrinsics)
+    try:
+        return [pipe.process(change(f.index, f) if change else f) for f in iter_frames(rec, range(frames))]
+    finally:
+        pipe.close()
+
+
+def test_a_first_frame_with_a_patch_of_depth_does_not_set_the_lighting_s_scale():
+    """Frame 0 with depth on a 12 x 12 patch alone (one usable sample): its estimate is its own, flagged weak, and does
+    not start the temporal filter, whose first estimate is every later solve's reference (its colour balance fixes
+    their albedo scale): frames 3-5 as bright as without it (before: 29% darker to the end, albedos over 1)."""
+    def patch(i, f):
+        if i:
+            return f
+        depth = np.zeros_like(f.depth)
+        depth[114:126, 154:166] = f.depth[114:126, 154:166]
+        return dataclasses.replace(f, depth=depth)
+
+    clean, patched = _demo_lighting(6), _demo_lighting(6, patch)
+    assert patched[0].diagnostics.weak and any("start the temporal filter" in n for n in patched[0].diagnostics.notes)
+    for a, b in zip(clean[3:], patched[3:]):
+        assert b.lighting.sh[:, 0] == pytest.approx(a.lighting.sh[:, 0], rel=0.1), b.index
+
+
+def test_a_black_frame_keeps_the_held_light():
+    """Frame 2 black (nothing to search the light in): it keeps the light held since frame 0, whose irradiance goes
+    on being filtered (before: frame 2 had none, which dropped its shadow, and frame 3's filter started again)."""
+    results = _demo_lighting(5, lambda i, f: dataclasses.replace(f, color=np.zeros_like(f.color)) if i == 2 else f)
+    suns = [r.diagnostics.sun for r in results]
+    assert results[2].diagnostics.weak and all(sun is not None for sun in suns)
+    assert np.degrees(np.arccos(np.clip(np.dot(suns[1]["direction"], suns[2]["direction"]), -1, 1))) < 5
+    assert suns[3]["irradiance"] != suns[3]["irradiance_frame"]
+
+
 def test_asynchronous_lighting_is_the_in_line_estimate_one_frame_later(tmp_path):
     """lighting.asynchronous with a worker that always finishes before the next frame (waited for here, as a slow
     camera would): frame 0 is estimated in line, every later frame hands its estimate to the worker and holds the

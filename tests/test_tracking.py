@@ -121,6 +121,18 @@ def test_tracking_resumes_after_the_camera_is_covered(data_dir):
     assert ate_rmse(stats.poses, {i: rec.poses[i] for i in stats.poses})[0] < 0.03
 
 
+def test_tracking_starts_at_the_first_frame_with_depth(data_dir):
+    """fr1_rpy's first 3 frames covered: tracking starts at frame 3, which defines the world, and the frames after
+    track; started at a covered frame 0 instead, every later frame failed (an empty model: odometry singular)."""
+    rec = open_recording(data_dir / "recordings" / "tum_fr1_rpy")
+    stats = _covered(rec, range(12), range(3))
+    assert [i for i, _ in stats.failures] == [0, 1, 2]
+    assert all("tracking not started: 0.0% of the pixels have depth" in r for _, r in stats.failures)
+    assert sorted(stats.poses) == list(range(3, 12)) and np.array_equal(stats.poses[3], np.eye(4))
+    start = np.linalg.inv(rec.poses[3])   # the recorded poses in the world of frame 3
+    assert ate_rmse(stats.poses, {i: start @ rec.poses[i] for i in stats.poses})[0] < 0.02
+
+
 def test_a_camera_that_comes_back_elsewhere_is_lost_not_misplaced(data_dir):
     """ICL-NUIM's living room covered for 3 s (frames 60-149) while the camera moves 1.3 m on: no features match
     the last tracked frame, and each frame after is reported lost. Without the features' confirmation a room's

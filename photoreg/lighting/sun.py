@@ -181,7 +181,8 @@ class SunSearch:
             self.frames += 1
             return self.last if self.held is not None else None
         if sol is None or sol.samples is None or sol.system is None or int((sol.weights > 0).sum()) < 10:
-            return None
+            # too little to search in (a black or covered frame): the held light as last refined, searched next frame
+            return self.last if self.held is not None else None
         coarse = self.frames % cfg.coarse_every == 0
         self.frames += 1
         self.forced = False

@@ -2,9 +2,9 @@
 
 The current frame (every step-th pixel: TRACK_WIDTH across, every 4th of a 640x480 frame) is aligned against the
 model depth ray-cast from the TSDF by the project's Warp kernel at the previous pose (Open3D's own ray_cast crashed
-intermittently here); the first frame defines the world. Frames that come further apart than the recording's (a
-live stream's dropped frames, --frames A:B:S) move the camera further than point-to-plane odometry converges from a
-standing start. The alignment starts from guesses:
+intermittently here); the first frame with depth (MIN_START_DEPTH) defines the world. Frames that come further
+apart than the recording's (a live stream's dropped frames, --frames A:B:S) move the camera further than
+point-to-plane odometry converges from a standing start. The alignment starts from guesses:
   1. the motion predicted at constant velocity (the last two tracked frames' motion, scaled to the time since),
      or no motion without a velocity. Where that alignment fails, or is doubtful (it corrected its guess by more
      than DOUBT_DEG / DOUBT_M, or fits worse than DOUBT_FIT of the recent frames' median), also:
@@ -47,6 +47,10 @@ LOST_AGREE_DEG, LOST_AGREE_M = 10.0, 0.15
 ORB_FEATURES = 500    # features per frame for the matched guess
 MATCH_RATIO = 0.8     # a feature's best match is kept where it is this much nearer than its second (Lowe's test)
 MIN_PNP_INLIERS = 12  # fewer RANSAC inliers give no matched guess
+# The first tracked frame defines the world and starts the model: one with less of its pixels with depth (a camera
+# that starts facing nothing within depth_max, or covered) is not taken, the next is tried (a 12 x 12 patch of depth
+# as the first frame left every later frame's odometry singular)
+MIN_START_DEPTH = 0.1
 
 
 class _View:
@@ -119,6 +123,11 @@ class Tracker:
         self.stats.frames += 1
         view = _View(frame, prep)
         if self.pose is None:
+            if prep.valid_depth_fraction < MIN_START_DEPTH:
+                reason = (f"frame {frame.index}: tracking not started: {prep.valid_depth_fraction:.1%} of the pixels "
+                          f"have depth, the first tracked frame needs {MIN_START_DEPTH:.0%}")
+                self.stats.failures.append((frame.index, reason))
+                return None, [reason]
             self.pose, self.time, self._key = np.eye(4), frame.timestamp, view
             self.stats.poses[frame.index] = self.pose.copy()
             return self.pose, []
