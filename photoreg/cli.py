@@ -3,6 +3,8 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import os
+import signal
 import sys
 
 from photoreg.config import GBUFFER_BACKENDS, SHADOW_RENDERERS
@@ -251,6 +253,9 @@ def main(argv: list[str] | None = None) -> int:
     module, func = HANDLERS[args.command].split(":")
     try:
         return int(getattr(importlib.import_module(module), func)(args) or 0)
+    except BrokenPipeError:   # `photoreg info X | head`: the reader is gone, as with SIGPIPE's status, no message
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())   # nor one at exit, flushing stdout
+        return 128 + signal.SIGPIPE
     except (ValueError, OSError, RuntimeError) as e:   # OSError: a file that cannot be read or written, named
         print(f"photoreg {args.command}: error: {open3d_message(e)}", file=sys.stderr)
         return 2

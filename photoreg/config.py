@@ -395,6 +395,14 @@ def validate(s: Session) -> None:
             raise ValueError(f"{where}: {msg}")
 
 
+def select_frames(spec: str, n: int, source: str) -> list[int]:
+    """parse_frames of a recording (`source`, for the message) of n frames, refusing a selection of none."""
+    indices = parse_frames(spec, n)
+    if not indices:
+        raise ValueError(f"{source}: no frames selected (recording has {n}, --frames {spec!r})")
+    return indices
+
+
 def parse_frames(spec: str, n: int) -> list[int]:
     """'' -> all; 'N' -> first N; 'A:B' or 'A:B:S' -> range (end exclusive, clipped to n); numbers >= 0, S >= 1."""
     if not spec:

@@ -10,8 +10,8 @@ from typing import Callable
 
 import numpy as np
 
-from .config import Session, load_session, parse_frames, validate
-from .io.atomic import write_json
+from .config import Session, load_session, select_frames, validate
+from .io.atomic import check_output_dir, write_json
 from .io.images import linear_to_srgb, write_exr, write_png_rgb
 from .io.poses import write_tum_trajectory
 from .io.video import VideoOut, frame_rate
@@ -152,15 +152,12 @@ def run_session(s: Session, quiet: bool = False, on_frame: Callable[[int, int], 
     from .pipeline import Pipeline
 
     rec = open_recording(s.recording.path, fmt=s.recording.format, undistort=s.recording.undistort)
-    indices = parse_frames(s.frames, len(rec))
-    if not indices:
-        raise ValueError(f"{s.recording.path}: no frames selected (recording has {len(rec)}, --frames {s.frames!r})")
+    indices = select_frames(s.frames, len(rec), s.recording.path)
     if s.recording.use_poses and not rec.has_poses:
         print(f"photoreg: {s.recording.path} has no poses: tracking the camera instead", file=sys.stderr)
         s.recording.use_poses = False
     out = Path(s.output.dir)
-    if out.exists() and not out.is_dir():
-        raise NotADirectoryError(f"output folder {out} (--out / [output] dir) is a file")
+    check_output_dir(out, "--out / [output] dir")
     out.mkdir(parents=True, exist_ok=True)
     (out / COMPLETE_MARKER).unlink(missing_ok=True)   # whatever this run leaves, it is not a batch's finished outputs
     pipe = Pipeline(s, rec.intrinsics)

@@ -133,11 +133,14 @@ def test_invalid_sessions_reported_before_any_work(tmp_path, recording, capsys):
     shutil.copytree(recording, corrupt_rec)
     (corrupt_rec / "intrinsics.json").write_text("{not json")
     corrupt = write_session(tmp_path, "corrupt", corrupt_rec)
+    none = write_session(tmp_path, "none", recording)   # selects no frame of the recording's 4
+    none.write_text(none.read_text().replace('frames = "0:3"', 'frames = "50:60"'))
     report = tmp_path / "report"
-    args = ["batch", *map(str, [good, unknown, wrong_type, missing, twin, frames, corrupt, good]), "--out", str(report)]
+    args = ["batch", *map(str, [good, unknown, wrong_type, missing, twin, frames, corrupt, none, good]), "--out",
+            str(report)]
     assert main(args) == 2
     err = capsys.readouterr().err
-    assert "7 problem(s)" in err
+    assert "8 problem(s)" in err and f"{recording}: no frames selected (recording has 4, --frames '50:60')" in err
     assert f"{good}: listed twice" in err and f"{frames}: frames (--frames): expected N" in err
     assert f"{corrupt_rec / 'intrinsics.json'}:1: not valid JSON" in err
     assert f"{unknown}: unknown section or key 'colour'" in err
@@ -162,6 +165,24 @@ def test_option_errors(tmp_path, recording, capsys, monkeypatch):
     err += capsys.readouterr().err
     assert "--workers must be >= 1" in err and "--ray-address needs --executor ray" in err
     assert "pip install 'photoreg[ray]'" in err and not (tmp_path / "out").exists()
+    (tmp_path / "report_file").write_text("a file")   # refused before any session runs
+    assert main(["batch", s, "--out", str(tmp_path / "report_file")]) == 2
+    assert "report_file (--out) is a file" in capsys.readouterr().err and not (tmp_path / "out").exists()
+
+
+def test_ground_truth_that_does_not_score_leaves_the_run_done(tmp_path, recording, capsys):
+    """A recording whose ground truth cannot be scored (a scene.json, but not the generator's): the session's
+    run is ok and complete (--resume skips it), its error says why it was not scored."""
+    odd = tmp_path / "odd_rec"
+    shutil.copytree(recording, odd)
+    (odd / "scene.json").write_text("{}")
+    session, report = write_session(tmp_path, "odd", odd), tmp_path / "report"
+    assert main(["batch", str(session), "--out", str(report)]) == 0
+    row = json.loads((report / "batch_summary.json").read_text())["sessions"][0]
+    assert row["status"] == "ok" and row["accuracy"] is None and row["frames"] == FRAMES
+    assert row["error"].startswith(f"not scored: {odd}") and "not as `photoreg synth` writes it" in row["error"]
+    assert main(["batch", str(session), "--out", str(report), "--resume"]) == 0
+    assert json.loads((report / "batch_summary.json").read_text())["sessions"][0]["status"] == "skipped"
 
 
 @pytest.mark.slow

@@ -154,7 +154,7 @@ def test_cli_train_finds_the_committed_demo_weights(tmp_path, monkeypatch, capsy
     assert (COMMITTED_DIR / copied.name).read_bytes() == copied.read_bytes()
     (tmp_path / "file").write_text("x")
     assert main(["train", "neural_soft", session, "--out", str(tmp_path / "file")]) == 2
-    assert f"{tmp_path / 'file'} (--out) is a file, not a folder" in capsys.readouterr().err
+    assert f"{tmp_path / 'file'} (--out) is a file" in capsys.readouterr().err
 
 
 def test_malformed_weights_name_the_file(tmp_path):

@@ -212,6 +212,30 @@ def test_info_command_error(tmp_path, capsys):
     assert "not a recognised recording" in capsys.readouterr().err
 
 
+def test_info_counts_every_missing_file(tmp_path, capsys):
+    """Files listed but gone, in frames the depth summary does not read (it samples 5 of 12): all counted."""
+    write_native(tmp_path, 12)
+    for name in ("rgb/000001.png", "depth/000001.png", "depth/000004.png", "depth/000007.png"):
+        (tmp_path / name).unlink()
+    assert main(["info", str(tmp_path)]) == 0
+    out = capsys.readouterr().out
+    assert f"missing:     4 listed file(s) of 3 frame(s): frame 1 {tmp_path / 'rgb/000001.png'}, frame 1" in out
+
+
+def test_output_into_a_closed_pipe_ends_quietly():
+    """`photoreg info X | head -1`: the reader gone, the command ends with SIGPIPE's status and no error message
+    (before: 'error: [Errno 32] Broken pipe', status 2)."""
+    import subprocess
+    import sys
+
+    demo = Path(__file__).resolve().parents[1] / "data" / "demo"
+    proc = subprocess.Popen([sys.executable, "-m", "photoreg", "info", str(demo)], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE)
+    proc.stdout.close()   # before it writes: its first line meets a closed pipe
+    err = proc.stderr.read().decode()
+    assert proc.wait(60) == 141 and "Broken pipe" not in err and "Traceback" not in err, err
+
+
 # --- folders written here ------------------------------------------------------------------------------
 
 def test_native_round_trip(tmp_path):

@@ -152,6 +152,14 @@ def test_errors_are_clear(tmp_path):
     (rec / "lighting_gt.json").write_text(json.dumps({"bands": 4, "sh": gt.tolist()}))
     with pytest.raises(ValueError, match="band mismatch"):
         score(out, rec)
+    out, rec = write_run(tmp_path, gt, [gt, gt, gt], n_rgb=2)   # a run of another recording than --gt
+    with pytest.raises(ValueError, match=r"holds frame\(s\) 2 that .*rec \(2 frames\) does not have"):
+        score(out, rec)
+    out, rec = write_run(tmp_path, gt, [gt])
+    for text in ("{}", "{not json"):   # a scene.json, but not the generator's: named, not a KeyError
+        (rec / "scene.json").write_text(text)
+        with pytest.raises(ValueError, match=r"scene\.json: not as `photoreg synth` writes it"):
+            score(out, rec)
 
 
 def test_score_command_prints_and_writes_json(tmp_path, capsys):
@@ -165,6 +173,8 @@ def test_score_command_prints_and_writes_json(tmp_path, capsys):
     assert saved["lighting"]["n_scored"] == 2
     assert cli_main(["score", str(tmp_path / "missing"), "--gt", str(rec)]) == 2
     assert "lighting.jsonl" in capsys.readouterr().err
+    assert cli_main(["score", str(out), "--gt", str(rec), "--json", str(tmp_path / "res")]) == 2   # a folder
+    assert f"{tmp_path / 'res'} (--json) is a folder" in capsys.readouterr().err
 
 
 # --- composites --------------------------------------------------------------------------------------
@@ -261,6 +271,9 @@ def test_composite_flicker_over_changed_pixels(tmp_path):
     assert fl["composite"] == pytest.approx(math.exp(0.3) - 1.0, rel=1e-2)      # EXR stores half floats
     assert np.isfinite(fl["camera"]) and fl["camera"] < fl["composite"]
     assert composite_flicker(tmp_path / "empty", demo) is None
+    gt_only = tmp_path / "gt_only"   # ground truth without the camera frames: no flicker to compare with
+    gt_only.mkdir()
+    assert composite_flicker(out, gt_only) is None
 
 
 def test_true_light_of_a_generated_recording(tmp_path):

@@ -349,6 +349,8 @@ def test_kinect_like_noise():
     (["plane", "--shutter", "0.05"], "--shutter 0.05: seconds in 0..0.0333"),
     (["plane", "--yaw", "nan"], "--yaw nan: need a finite angle"),
     (["plane", "--seed", "-1"], "--seed -1: need an integer in 0..2^32-1"),
+    (["plane", "--size", "40000x30000"], "--size 40000x30000: need 8..8192 pixels a side"),
+    (["plane", "--frames", "100000000"], "--frames 100000000: need 1..100000"),
 ])
 def test_bad_input_is_named(tmp_path, capsys, argv, message):
     assert cli.main(["synth", *argv[:1], "--out", str(tmp_path / "o"), *argv[1:]]) == 2
@@ -375,6 +377,22 @@ def test_an_interrupted_render_leaves_no_recording(tmp_path, monkeypatch):
     monkeypatch.setattr(gen, "_exposed", exposed)
     assert generate(cfg, log=None) == tmp_path / "rec"
     assert (tmp_path / "rec" / "scene.json").is_file() and not (tmp_path / "rec.partial").exists()
+
+
+def test_an_empty_folder_given_as_dot_or_a_link_receives_the_recording(tmp_path, monkeypatch):
+    """--out . (an empty working folder) and a link to an empty folder: the files move into it (before: '.' has an
+    empty name; a link rendered every frame, then failed, leaving LINK.partial)."""
+    (tmp_path / "here").mkdir()
+    monkeypatch.chdir(tmp_path / "here")
+    assert cli.main(["synth", "plane", "--out", ".", "--frames", "1", "--size", "16x12", "--spp", "1",
+                     "--insert-frames", "none"]) == 0
+    assert (tmp_path / "here" / "scene.json").is_file() and not (tmp_path / "here.partial").exists()
+    (tmp_path / "real").mkdir()
+    (tmp_path / "link").symlink_to(tmp_path / "real")
+    cfg = SynthConfig("plane", str(tmp_path / "link"), frames=1, width=16, height=12, spp=1, insert_frames="none")
+    assert generate(cfg, log=None) == tmp_path / "link"
+    assert (tmp_path / "link").is_symlink() and (tmp_path / "real" / "rgb" / "000000.png").is_file()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["here", "link", "real"]
 
 
 def test_refuses_non_empty_output(tmp_path, capsys):

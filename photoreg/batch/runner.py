@@ -16,8 +16,8 @@ import traceback
 from dataclasses import dataclass
 from pathlib import Path
 
-from ..config import Session, load_session
-from ..io.atomic import atomic_path, write_json, write_text
+from ..config import Session, load_session, select_frames
+from ..io.atomic import atomic_path, check_output_dir, write_json, write_text
 from ..runner import COMPLETE_MARKER
 PLOT_NAME = "batch_speed_vs_error.png"
 TRACEBACK_LINES = 15
@@ -46,7 +46,8 @@ def plan(paths: list[str], device: str | None = None) -> list[SessionTask]:
     for i, p in enumerate(paths):
         try:
             s = load_session(p)
-            open_recording(s.recording.path, fmt=s.recording.format, undistort=s.recording.undistort)
+            rec = open_recording(s.recording.path, fmt=s.recording.format, undistort=s.recording.undistort)
+            select_frames(s.frames, len(rec), s.recording.path)
         except (ValueError, OSError) as e:
             errors.append(str(e) if str(Path(p)) in str(e) else f"{p}: {e}")
             continue
@@ -105,10 +106,10 @@ def accuracy_summary(scores: dict) -> dict:
 def run_one(task: SessionTask, progress=None) -> dict:
     """Run one session (the work unit of both executors) and return its result; never raises.
 
-    Writes the run's outputs, scores them where the recording has lighting_gt.json, then writes the
-    completion marker. `progress` (anything with put(), e.g. a queue) receives (index, done, total)
-    after each frame. wall_s covers the whole session (start-up and scoring included); frames_per_s
-    is the runner's figure for the frame loop alone."""
+    Writes the run's outputs, scores them where the recording has lighting_gt.json (ground truth that cannot be
+    scored is the result's error, the run still ok), then writes the completion marker. `progress` (anything with
+    put(), e.g. a queue) receives (index, done, total) after each frame. wall_s covers the whole session (start-up
+    and scoring included); frames_per_s is the runner's figure for the frame loop alone."""
     from ..bench.score import score
     from ..runner import run_session
 
@@ -118,10 +119,13 @@ def run_one(task: SessionTask, progress=None) -> dict:
         (out / COMPLETE_MARKER).unlink(missing_ok=True)
         on_frame = None if progress is None else (lambda done, total: progress.put((task.index, done, total)))
         summary = run_session(task.session, quiet=True, on_frame=on_frame)
-        accuracy = None
+        accuracy, unscored = None, None
         if (Path(task.session.recording.path) / "lighting_gt.json").is_file():
-            accuracy = accuracy_summary(score(out, task.session.recording.path))
-        result = {"session": task.path, "name": task.name, "out": str(out), "status": "ok", "error": None,
+            try:   # ground truth that does not score leaves the run done, its outputs whole
+                accuracy = accuracy_summary(score(out, task.session.recording.path))
+            except (ValueError, OSError) as e:
+                unscored = f"not scored: {e}"
+        result = {"session": task.path, "name": task.name, "out": str(out), "status": "ok", "error": unscored,
                   "traceback": None, "device": summary["device"], "frames": summary["frames_processed"],
                   "wall_s": round(time.perf_counter() - t0, 3), "frames_per_s": summary["frames_per_s"],
                   "accuracy": accuracy, "attempts": 1}
@@ -247,6 +251,7 @@ def batch_command(args) -> int:
         raise ValueError(f"--workers must be >= 1, got {args.workers}")
     if args.ray_address and args.executor != "ray":
         raise ValueError("--ray-address needs --executor ray")
+    check_output_dir(args.out, "--out")
     t0 = time.perf_counter()
     tasks = plan(args.sessions, args.device)
     progress = BatchProgress(tasks)

@@ -25,7 +25,7 @@ import cv2
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from ..io.atomic import write_json
+from ..io.atomic import check_output_file, write_json
 from ..io.images import read_exr, read_rgb, srgb_to_linear
 from ..config import parse_frames
 from ..io.recording import Recording, detect_format, open_recording
@@ -80,16 +80,23 @@ def true_light(recording: str | Path) -> tuple[np.ndarray, dict | None]:
     from ..synth.environment import Sun
 
     recording = Path(recording)
-    gt = json.loads((recording / "lighting_gt.json").read_text())
-    F = float(gt["exposure"]) * load_gt(recording)
-    sky = json.loads((recording / "scene.json").read_text())["lighting"]
-    suns = [Sun(**{**s, "colour": tuple(s["colour"])}) for s in sky.get("suns", [])]
+    sh_gt = load_gt(recording)
+    path = recording / "lighting_gt.json"
+    try:
+        exposure = float(json.loads(path.read_text())["exposure"])
+        path = recording / "scene.json"
+        sky = json.loads(path.read_text())["lighting"]
+        suns = [Sun(**{**s, "colour": tuple(s["colour"])}) for s in sky.get("suns", [])]
+        yaw = float(sky.get("yaw_deg", 0.0))
+    except (KeyError, TypeError, AttributeError, ValueError) as e:   # JSONDecodeError is a ValueError
+        raise ValueError(f"{path}: not as `photoreg synth` writes it ({type(e).__name__}: {e})") from None
+    F = exposure * sh_gt
     if not suns:
         return F, None
     sun = max(suns, key=lambda s: s.irradiance * float(np.mean(s.colour)))
-    d = Rotation.from_euler("z", float(sky.get("yaw_deg", 0.0)), degrees=True).apply(sun.direction())  # -> world
+    d = Rotation.from_euler("z", yaw, degrees=True).apply(sun.direction())  # -> world
     return F, {"direction": d.tolist(), "angle": math.radians(sun.diameter_deg) / 2.0,
-               "irradiance": (float(gt["exposure"]) * sun.irradiance * np.asarray(sun.colour)).tolist(), "gain": 1.0}
+               "irradiance": (exposure * sun.irradiance * np.asarray(sun.colour)).tolist(), "gain": 1.0}
 
 
 def load_lighting(out: str | Path) -> tuple[dict[int, np.ndarray], dict[int, list | None], dict[int, list | None]]:
@@ -277,9 +284,9 @@ def composite_flicker(out: str | Path, recording: str | Path) -> dict | None:
     the pixels the insertion changed in any of them, beside the camera frames' own flicker on the same
     pixels (sensor or render noise sets that floor); None with fewer than two composites."""
     files = sorted(p for p in (Path(out) / "composite_linear").glob("*.exr") if p.stem.isdigit())
-    if len(files) < 2:
-        return None
     rgb = color_files(recording)
+    if len(files) < 2 or not rgb:   # no camera frames: a folder of ground truth alone
+        return None
     comps = [read_exr(p) for p in files]
     cams = [srgb_to_linear(read_rgb(rgb[int(p.stem)])) for p in files]
     region = metrics.changed_region(comps, cams)
@@ -323,14 +330,19 @@ def score(out: str | Path, recording: str | Path, composite: bool = False) -> di
     gt = load_gt(recording)
     sun = true_light(recording)[1] if (Path(recording) / "scene.json").is_file() else None   # a generated one's
     estimates, lights, poses = load_lighting(out)
+    n = len(color_files(recording))
+    foreign = sorted(i for i in estimates if i >= n) if n else []
+    if foreign:
+        listed = ", ".join(map(str, foreign[:5])) + (", ..." if len(foreign) > 5 else "")
+        raise ValueError(f"{out} holds frame(s) {listed} that {recording} ({n} frames) does not have: is --gt the "
+                         "recording it ran on?")
     turn = tracked_to_world(out, recording, poses)
     if turn is not None:
         R, anchor = turn
         estimates = {i: sh.rotate(e, R) for i, e in estimates.items()}
         lights = {i: None if d is None else (R @ np.asarray(d, np.float64)).tolist() for i, d in lights.items()}
     result = {"out": str(out), "recording": str(recording),
-              "lighting": score_lighting(estimates, gt, selected_frames(out, len(color_files(recording))), lights,
-                                         sun)}
+              "lighting": score_lighting(estimates, gt, selected_frames(out, n), lights, sun)}
     if turn is not None:
         result["lighting"]["notes"].append(f"a tracked run (--no-poses): its lighting turned into the recording's "
                                            f"world by frame {anchor}'s recorded and tracked poses")
@@ -375,8 +387,10 @@ def format_report(result: dict) -> str:
 
 def score_command(args) -> int:
     """CLI entry: print the report, write --json atomically when given."""
+    if getattr(args, "json_out", None):
+        check_output_file(args.json_out, "--json")
     result = score(args.out, args.gt, composite=bool(getattr(args, "composite", False)))
-    print(format_report(result))
     if getattr(args, "json_out", None):
         write_json(args.json_out, result)
+    print(format_report(result))
     return 0

@@ -35,6 +35,18 @@ def write_json(path: str | os.PathLike, obj) -> None:
     write_text(path, json.dumps(obj, indent=2) + "\n")
 
 
+def check_output_dir(path: str | os.PathLike, option: str) -> None:
+    """Refuse, before any work is done, an output folder's path that is a file or lies under one (`option`: the
+    command-line option or key that gave it, for the message)."""
+    path = Path(path)
+    for p in (path, *path.parents):
+        if p.exists():
+            if not p.is_dir():
+                raise NotADirectoryError(f"output folder {path} ({option})" +
+                                         (" is a file" if p == path else f": {p} is a file, not a folder"))
+            return
+
+
 def check_output_file(path: str | os.PathLike, option: str) -> None:
     """Refuse, before any work is done, an output file's path that is a folder or lies under a file (`option`: the
     command-line option or key that gave it, for the message)."""

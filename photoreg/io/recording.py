@@ -268,6 +268,11 @@ def info_command(args: argparse.Namespace) -> int:
             print("depth:       no valid depth in the sampled frames")
         for i, msg in errors:
             print(f"unreadable:  frame {i}: {msg}")
+        missing = [(i, p) for i, pair in enumerate(zip(rec.color_files, rec.depth_files)) for p in pair
+                   if not Path(p).is_file()]   # of every frame: the depth above reads a few
+        if missing:
+            print(f"missing:     {len(missing)} listed file(s) of {len({i for i, _ in missing})} frame(s): "
+                  + ", ".join(f"frame {i} {p}" for i, p in missing[:3]) + (", ..." if len(missing) > 3 else ""))
     for note in rec.notes:
         print(f"note:        {note}")
     return 0

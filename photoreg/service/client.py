@@ -25,7 +25,7 @@ from websockets.sync.client import ClientConnection
 from websockets.sync.client import connect as ws_connect
 
 from ..io.ahead import Ahead
-from ..io.atomic import atomic_path, write_json
+from ..io.atomic import atomic_path, check_output_dir, write_json
 from ..types import Frame, Intrinsics
 from .protocol import (CLIENT_RECONSTRUCTION_KEYS, ProtocolError, decode, decode_composite, encode, encode_frame,
                        hello_message, record_from_lighting, token_option)
@@ -291,16 +291,14 @@ def session_options(path: str | Path) -> dict:
 
 def stream_command(args) -> int:
     """`photoreg stream RECORDING --url URL`: replay a recording through a server, save the replies."""
-    from ..config import parse_frames
+    from ..config import select_frames
     from ..io.poses import write_tum_trajectory
     from ..io.recording import ReadAhead, open_recording
     from ..recon.tracking import ate_against
     from ..runner import Progress, remove_earlier, writer_threads
 
     rec = open_recording(args.recording)
-    indices = parse_frames(args.frames or "", len(rec))
-    if not indices:
-        raise ValueError(f"{args.recording}: no frames selected (recording has {len(rec)}, --frames {args.frames!r})")
+    indices = select_frames(args.frames or "", len(rec), args.recording)
     options: dict = session_options(args.session) if args.session else {}
     lighting = {k: v for k, v in (("bands", args.bands), ("rays", args.rays), ("stride", args.stride),
                                   ("ray_length", args.ray_length), ("every", args.every),
@@ -316,8 +314,8 @@ def stream_command(args) -> int:
     if args.window < 1:
         raise ValueError(f"--window must be >= 1 (frames in flight), got {args.window}")
     out = Path(args.out) if args.out else None
-    if out is not None and out.exists() and not out.is_dir():
-        raise NotADirectoryError(f"output folder {out} (--out) is a file")
+    if out is not None:
+        check_output_dir(out, "--out")
     skipped: list[dict] = []
     progress = Progress(len(indices), args.quiet)
     t_hello = time.perf_counter()

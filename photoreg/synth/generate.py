@@ -35,6 +35,8 @@ GENERATOR_VERSION = "1"
 FPS = 30.0  # frame i is at i / FPS seconds
 BANDS = 8
 SHUTTER_SAMPLES = 8  # instants a frame with a shutter time (--shutter) is rendered at and averaged over
+# Beyond these the render runs out of memory with an opaque error (Dr.Jit's at 40000x30000, numpy's at 10^8 frames)
+MAX_SIDE, MAX_FRAMES, MAX_SPP = 8192, 100_000, 65_536
 
 
 @dataclass
@@ -86,12 +88,12 @@ class SynthConfig:
             raise ValueError(f"unknown scene kind {self.scene!r}; choose one of {', '.join(SCENE_KINDS)}")
         if self.camera not in CAMERA_PATHS:
             raise ValueError(f"--camera {self.camera!r}: choose one of {', '.join(CAMERA_PATHS)}")
-        if self.frames < 1:
-            raise ValueError(f"--frames {self.frames}: need at least 1")
-        if self.spp < 1:
-            raise ValueError(f"--spp {self.spp}: need at least 1")
-        if self.width < 8 or self.height < 8:
-            raise ValueError(f"--size {self.width}x{self.height}: need at least 8x8 pixels")
+        if not 1 <= self.frames <= MAX_FRAMES:
+            raise ValueError(f"--frames {self.frames}: need 1..{MAX_FRAMES}")
+        if not 1 <= self.spp <= MAX_SPP:
+            raise ValueError(f"--spp {self.spp}: need 1..{MAX_SPP}")
+        if not (8 <= self.width <= MAX_SIDE and 8 <= self.height <= MAX_SIDE):
+            raise ValueError(f"--size {self.width}x{self.height}: need 8..{MAX_SIDE} pixels a side")
         if not (self.overexpose > 0 and np.isfinite(self.overexpose)):
             raise ValueError(f"--overexpose {self.overexpose}: need a positive factor")
         if not np.isfinite(self.yaw):
@@ -211,14 +213,14 @@ def rerender_inserts(recording: str | Path) -> dict[int, np.ndarray]:
 
 def generate(cfg: SynthConfig, log: Callable[[str], None] | None = print) -> Path:
     """Render the recording described by `cfg` into cfg.out (which must be absent or empty); returns its path. It is
-    written into OUT.partial and renamed when whole, so an interrupted run leaves no folder that passes for a
-    recording (a later run starts OUT.partial again)."""
+    written into OUT.partial and renamed (or its files moved into an empty OUT) when whole, so an interrupted run
+    leaves no folder that passes for a recording (a later run starts OUT.partial again)."""
     cfg.validate()
     final = Path(cfg.out)
     if final.exists() and (not final.is_dir() or any(final.iterdir())):
         raise ValueError(f"--out {final}: exists and is not an empty folder; remove it or choose another")
     say = log or (lambda _msg: None)
-    out = final.with_name(final.name + ".partial")
+    out = final.resolve().with_name(final.resolve().name + ".partial")   # "." and a link to a folder have a name
     if out.exists():
         say(f"removing {out}, an interrupted run's")
         shutil.rmtree(out)
@@ -298,9 +300,12 @@ def generate(cfg: SynthConfig, log: Callable[[str], None] | None = print) -> Pat
                                                          else ""))},
                    "images": "insert/NNNNNN.png (sRGB) and .exr (linear, exposure applied); insert_mask/ 255 = virtual object"},
     })
-    if final.exists():
-        final.rmdir()   # empty, checked above
-    os.replace(out, final)
+    if final.exists():   # an empty folder (checked above), perhaps "." or a link: the files move into it
+        for entry in out.iterdir():
+            os.replace(entry, final / entry.name)
+        out.rmdir()
+    else:
+        os.replace(out, final)
     total = time.perf_counter() - t_start
     say(f"wrote {cfg.frames} frames to {final} in {total:.1f} s ({np.mean(per_frame):.2f} s/frame, "
         f"{mi.variant()}, exposure {exposure:.4g})")

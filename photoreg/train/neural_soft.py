@@ -16,6 +16,7 @@ from typing import Callable
 
 import numpy as np
 
+from photoreg.io.atomic import check_output_dir
 from photoreg.render.neural_soft_weights import NeuralSoftSettings, cache_dir, mesh_sha256, save_weights, weights_key
 from photoreg.render.shadow_mlp import ShadowMLP, encode, forward, init_mlp, predict
 from photoreg.render.shadow_texture import ShadowTracer, light_grid
@@ -176,8 +177,8 @@ def train_command(args) -> int:
     from photoreg.render.scene import load_scene
 
     out = Path(args.out) if args.out else None
-    if out is not None and out.exists() and not out.is_dir():
-        raise NotADirectoryError(f"{out} (--out) is a file, not a folder")
+    if out is not None:
+        check_output_dir(out, "--out")
     session = load_session(args.session)
     settings = NeuralSoftSettings()
     done: set[str] = set()
