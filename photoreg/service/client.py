@@ -1,4 +1,4 @@
-"""Client of `photoreg serve` (protocol 1.1, docs/protocol.md) and `photoreg stream`.
+"""Client of `photoreg serve` (protocol 1.2, docs/protocol.md) and `photoreg stream`.
 
 `connect()` opens a session (hello -> ready) over websockets' synchronous client; `send_frame()`
 returns at once and replies arrive in order through `recv()` / `poll()`, so a plain loop can keep

@@ -1,4 +1,4 @@
-"""Wire protocol 1.1 of `photoreg serve` (docs/protocol.md): framing, message builders, validation.
+"""Wire protocol 1.2 of `photoreg serve` (docs/protocol.md): framing, message builders, validation.
 
 Pure functions, no I/O: the server and the client both build and check messages here, so the two
 sides cannot drift apart. A message is either a WebSocket text message holding one JSON object, or

@@ -1,4 +1,4 @@
-"""`photoreg serve`: the WebSocket service (protocol 1.1, docs/protocol.md), one pipeline per connection.
+"""`photoreg serve`: the WebSocket service (protocol 1.2, docs/protocol.md), one pipeline per connection.
 
 A connection runs three tasks on the event loop: a reader (receive, validate, start decoding a frame's
 images on a helper thread), an orderer (queue the decoded frames in the order they came) and a worker (run
