@@ -91,6 +91,7 @@ class Pipeline:
             from .recon.tracking import Tracker
             self.tracker = Tracker(self.volume, intrinsics, rc)
         self.prev_F: np.ndarray | None = None
+        self.prev_from: tuple[int | None, dict | None] = (None, None)   # prev_F's estimated_frame and traced light
         self.last_solution: Solution | None = None  # the latest frame's solve (benchmarks/observability.py)
         # the latest estimate (frame index, lighting, diagnostics) and how many frames have held it (lighting.every)
         self._held: tuple[int, Lighting, SolveDiagnostics] | None = None
@@ -488,9 +489,10 @@ class Pipeline:
                 # the luminance was denoised
                 region = self.render.region if lc.denoise == "none" else None
                 notes = [*notes, *(f"render: {n}" for n in self.render.last.notes)]   # why it drew no shadow, say
-        if F is None:  # no pose: keep the previous estimate (or darkness), flagged weak
+        if F is None:  # no pose: keep the previous estimate, its light and the frame it came from (or darkness), weak
             prev = self.prev_F if self.prev_F is not None else np.zeros((3, self.solver_cfg.fit_bands ** 2))
-            F, diag = Lighting(prev.copy()), SolveDiagnostics(notes=["no pose: previous estimate repeated"])
+            F, diag = Lighting(prev.copy()), SolveDiagnostics(notes=["no pose: previous estimate repeated"],
+                                                              estimated_frame=self.prev_from[0], sun=self.prev_from[1])
         diag.notes = notes + list(diag.notes)
         if prep.saturated_fraction > 0.2:
             diag.notes.append(f"{prep.saturated_fraction:.0%} of pixels saturated")
@@ -500,7 +502,7 @@ class Pipeline:
             diag.notes.append(f"{1 - prep.valid_depth_fraction:.0%} of pixels without depth (0, NaN or outside "
                               "reconstruction.depth_min..depth_max)")
         if not diag.weak:
-            self.prev_F = F.sh
+            self.prev_F, self.prev_from = F.sh, (diag.estimated_frame, diag.sun)
         t["total"] = (time.perf_counter() - t_all) * 1000.0
         return FrameResult(frame.index, frame.timestamp, F, diag, sh.dominant_direction(F.sh), t, composite=composite,
                            composite_region=region, pose=pose)

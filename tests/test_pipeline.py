@@ -355,6 +355,16 @@ def test_a_black_frame_keeps_the_held_light():
     assert suns[3]["irradiance"] != suns[3]["irradiance_frame"]
 
 
+def test_a_frame_without_a_pose_repeats_the_previous_estimate_and_its_light():
+    """Frame 2 without a pose repeats frame 1's lighting, says it is frame 1's and keeps its traced light (before: no
+    estimated_frame and no light, which photoreg score counted as 90 degrees off)."""
+    results = _demo_lighting(3, lambda i, f: dataclasses.replace(f, pose=None) if i == 2 else f)
+    held, before = results[2].diagnostics, results[1].diagnostics
+    assert held.weak and "no pose: previous estimate repeated" in held.notes
+    assert held.estimated_frame == 1 and held.sun == before.sun is not None
+    assert np.array_equal(results[2].lighting.sh, results[1].lighting.sh)
+
+
 def test_asynchronous_lighting_is_the_in_line_estimate_one_frame_later(tmp_path):
     """lighting.asynchronous with a worker that always finishes before the next frame (waited for here, as a slow
     camera would): frame 0 is estimated in line, every later frame hands its estimate to the worker and holds the

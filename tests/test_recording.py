@@ -348,7 +348,7 @@ def test_index_errors_name_file_and_line(tmp_path, case):
     elif case == "non-finite pose":
         first = gt.read_text().splitlines()[5]
         _replace(gt, first, first.split()[0] + " nan 0 0 0 0 0 1")
-        where = f"{gt}:6"
+        where = f"{gt}:6: invalid pose (non-finite translation [nan, 0.0, 0.0])"
     elif case == "non-unit quaternion":
         first = gt.read_text().splitlines()[3]
         _replace(gt, first, first.split()[0] + " 0 0 0 0.5 0 0 0.5")

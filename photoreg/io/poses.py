@@ -14,7 +14,9 @@ def pose_from_tum(values) -> np.ndarray:
     v = np.asarray(values, dtype=np.float64)
     q = v[3:7]
     n = np.linalg.norm(q)
-    if not np.all(np.isfinite(v)) or abs(n - 1.0) > 1e-2:
+    if not np.all(np.isfinite(v[:3])):
+        raise ValueError(f"invalid pose (non-finite translation {v[:3].tolist()})")
+    if not np.all(np.isfinite(q)) or abs(n - 1.0) > 1e-2:
         raise ValueError(f"invalid pose (non-finite or non-unit quaternion, |q|={n:.4f})")
     T = np.eye(4)
     T[:3, :3] = Rotation.from_quat(q / n).as_matrix()
