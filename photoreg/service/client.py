@@ -187,8 +187,9 @@ def replay(client: Client, frames: Iterable[Frame], realtime: bool = False, wind
     threads ahead of the sending (encoded_ahead).
     """
     pending: OrderedDict[int, float] = OrderedDict()   # index -> send time, in send order
-    latencies, server_latencies, records, errors = [], [], [], []
-    counts = {"sent": 0, "dropped": 0, "composites": 0}
+    latencies, server_latencies, weak, errors = [], [], [], []
+    counts = {"sent": 0, "dropped": 0, "composites": 0, "processed": 0}
+    stage_ms: dict[str, float] = {}   # the records' stage ms summed; records go to on_record, not kept (5 KB a frame)
     bye: dict = {}
     t_start = time.perf_counter()
     ts0 = None
@@ -204,7 +205,11 @@ def replay(client: Client, frames: Iterable[Frame], realtime: bool = False, wind
                 latencies.append((now - pending.pop(index)) * 1000.0)
             server_latencies.append(msg["latency_ms"])
             record = record_from_lighting(msg)
-            records.append(record)
+            counts["processed"] += 1
+            if record["diagnostics"].get("weak"):
+                weak.append(record["frame"])
+            for stage, ms in record["timings_ms"].items():
+                stage_ms[stage] = stage_ms.get(stage, 0.0) + ms
             if on_record is not None:
                 on_record(record)
         elif msg["type"] == "composite":
@@ -253,16 +258,14 @@ def replay(client: Client, frames: Iterable[Frame], realtime: bool = False, wind
     client.close()
     counts["dropped"] += len(pending)   # never answered: dropped or cancelled at the end
     wall = time.perf_counter() - t_start
-    stages = sorted({k for r in records for k in r["timings_ms"]})
+    n = counts["processed"]
     return {
-        "device": client.ready.get("device"), "frames_sent": counts["sent"], "frames_processed": len(records),
+        "device": client.ready.get("device"), "frames_sent": counts["sent"], "frames_processed": n,
         "composites": counts["composites"],
         "frames_dropped": counts["dropped"], "errors": errors, "stopped": stopped,
-        "wall_s": round(wall, 3), "frames_per_s": round(len(records) / wall, 3) if wall > 0 else None,
+        "wall_s": round(wall, 3), "frames_per_s": round(n / wall, 3) if wall > 0 else None,
         "latency_ms": percentiles(latencies), "server_latency_ms": percentiles(server_latencies),
-        "weak_frames": [r["frame"] for r in records if r["diagnostics"].get("weak")],
-        "timings_ms_mean": {k: round(float(np.mean([r["timings_ms"].get(k, 0.0) for r in records])), 3)
-                            for k in stages},
+        "weak_frames": weak, "timings_ms_mean": {k: round(stage_ms[k] / n, 3) for k in sorted(stage_ms)},
         "server_bye": bye, "settings": client.ready.get("settings"),
     }
 
