@@ -44,6 +44,23 @@ class FrameDone:
     pose: np.ndarray | None   # kept where the camera is tracked (trajectory.txt)
 
 
+class StageTimes:
+    """Each stage's ms summed over the frames (a run or a stream keeps no frame's timings): add() a frame's,
+    means() over every frame added, a stage a frame did not run counting 0 there."""
+
+    def __init__(self) -> None:
+        self.total: dict[str, float] = {}
+        self.frames = 0
+
+    def add(self, timings_ms: dict[str, float]) -> None:
+        self.frames += 1
+        for stage, ms in timings_ms.items():
+            self.total[stage] = self.total.get(stage, 0.0) + ms
+
+    def means(self) -> dict[str, float]:
+        return {k: round(v / self.frames, 3) for k, v in sorted(self.total.items())}
+
+
 def session_from_args(args) -> Session:
     """Session from a .toml file or a bare recording folder, with command-line overrides applied."""
     src = Path(args.input)
@@ -176,7 +193,7 @@ def run_session(s: Session, quiet: bool = False, on_frame: Callable[[int, int], 
     pipe = Pipeline(s, rec.intrinsics)
     skipped: list[dict] = []
     results: list[FrameDone] = []
-    stage_ms: dict[str, float] = {}   # each stage's ms summed over the frames
+    stage_ms = StageTimes()
     progress = Progress(len(indices), quiet)
     fps = frame_rate(rec.timestamps[indices])
     video = VideoOut(out / "composite.mp4", rec.intrinsics.width, rec.intrinsics.height, fps) if s.output.video else None
@@ -193,8 +210,7 @@ def run_session(s: Session, quiet: bool = False, on_frame: Callable[[int, int], 
                 r = pipe.process(frame)
                 results.append(FrameDone(r.index, r.timestamp, r.diagnostics.weak, r.composite is not None,
                                          r.pose if pipe.tracker is not None else None))
-                for stage, ms in r.timings_ms.items():
-                    stage_ms[stage] = stage_ms.get(stage, 0.0) + ms
+                stage_ms.add(r.timings_ms)
                 f.write(json.dumps(result_record(r)) + "\n")
                 f.flush()
                 k = s.output.pictures_every
@@ -233,7 +249,7 @@ def run_session(s: Session, quiet: bool = False, on_frame: Callable[[int, int], 
         # frames composited (a frame without a pose, recorded or tracked, has no composite and no video frame)
         "composites": sum(r.composited for r in results) if s.objects else None,
         "video": None if video is None else {"file": video.path.name, "frames": video.frames, "fps": round(fps, 3)},
-        "timings_ms_mean": {k: round(stage_ms[k] / len(results), 3) for k in sorted(stage_ms)},
+        "timings_ms_mean": stage_ms.means(),
         "settings": {"lighting": vars(s.lighting), "reconstruction": vars(s.reconstruction),
                      "use_poses": s.recording.use_poses, "undistort": s.recording.undistort, "frames": s.frames,
                      "render": vars(s.render) if s.objects else None},

@@ -304,18 +304,17 @@ def selected_frames(out: str | Path, n: int) -> list[int]:
         return list(range(n))
 
 
-def tracked_to_world(out: str | Path, recording: str | Path,
+def tracked_to_world(out: str | Path, recording: str | Path, rec: Recording | None,
                      poses: dict[int, list | None]) -> tuple[np.ndarray, int] | None:
     """For a run that tracked the camera (summary.json: use_poses false), whose world is its first tracked camera's
     frame: (the rotation into the recording's world, the frame whose recorded and tracked poses relate the two); None
-    for a run lit from the recorded poses. ValueError where no frame has both."""
+    for a run lit from the recorded poses. ValueError where no frame has both. `rec`: recording_of(recording)."""
     try:
         settings = json.loads((Path(out) / "summary.json").read_text()).get("settings", {})
     except (OSError, ValueError):
         return None
     if settings.get("use_poses", True):
         return None
-    rec = recording_of(recording)
     recorded = None if rec is None else rec.poses
     for i in sorted(poses):
         if poses[i] is not None and recorded is not None and i < len(recorded) and recorded[i] is not None:
@@ -330,13 +329,14 @@ def score(out: str | Path, recording: str | Path, composite: bool = False) -> di
     gt = load_gt(recording)
     sun = true_light(recording)[1] if (Path(recording) / "scene.json").is_file() else None   # a generated one's
     estimates, lights, poses = load_lighting(out)
-    n = len(color_files(recording))
+    rec = recording_of(recording)   # opened once: its frame count and, for a tracked run, its poses
+    n = 0 if rec is None else len(rec)
     foreign = sorted(i for i in estimates if i >= n) if n else []
     if foreign:
         listed = ", ".join(map(str, foreign[:5])) + (", ..." if len(foreign) > 5 else "")
         raise ValueError(f"{out} holds frame(s) {listed} that {recording} ({n} frames) does not have: is --gt the "
                          "recording it ran on?")
-    turn = tracked_to_world(out, recording, poses)
+    turn = tracked_to_world(out, recording, rec, poses)
     if turn is not None:
         R, anchor = turn
         estimates = {i: sh.rotate(e, R) for i, e in estimates.items()}

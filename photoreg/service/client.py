@@ -26,6 +26,7 @@ from websockets.sync.client import connect as ws_connect
 
 from ..io.ahead import Ahead
 from ..io.atomic import atomic_path, check_output_dir, write_json
+from ..runner import Progress, StageTimes, remove_earlier, writer_threads
 from ..types import Frame, Intrinsics
 from .protocol import (CLIENT_RECONSTRUCTION_KEYS, ProtocolError, decode, decode_composite, encode, encode_frame,
                        hello_message, record_from_lighting, token_option)
@@ -188,8 +189,8 @@ def replay(client: Client, frames: Iterable[Frame], realtime: bool = False, wind
     """
     pending: OrderedDict[int, float] = OrderedDict()   # index -> send time, in send order
     latencies, server_latencies, weak, errors = [], [], [], []
-    counts = {"sent": 0, "dropped": 0, "composites": 0, "processed": 0}
-    stage_ms: dict[str, float] = {}   # the records' stage ms summed; records go to on_record, not kept (5 KB a frame)
+    counts = {"sent": 0, "dropped": 0, "composites": 0}
+    stage_ms = StageTimes()   # records go to on_record, not kept (5 KB a frame)
     bye: dict = {}
     t_start = time.perf_counter()
     ts0 = None
@@ -205,11 +206,9 @@ def replay(client: Client, frames: Iterable[Frame], realtime: bool = False, wind
                 latencies.append((now - pending.pop(index)) * 1000.0)
             server_latencies.append(msg["latency_ms"])
             record = record_from_lighting(msg)
-            counts["processed"] += 1
+            stage_ms.add(record["timings_ms"])
             if record["diagnostics"].get("weak"):
                 weak.append(record["frame"])
-            for stage, ms in record["timings_ms"].items():
-                stage_ms[stage] = stage_ms.get(stage, 0.0) + ms
             if on_record is not None:
                 on_record(record)
         elif msg["type"] == "composite":
@@ -258,14 +257,14 @@ def replay(client: Client, frames: Iterable[Frame], realtime: bool = False, wind
     client.close()
     counts["dropped"] += len(pending)   # never answered: dropped or cancelled at the end
     wall = time.perf_counter() - t_start
-    n = counts["processed"]
+    n = stage_ms.frames
     return {
         "device": client.ready.get("device"), "frames_sent": counts["sent"], "frames_processed": n,
         "composites": counts["composites"],
         "frames_dropped": counts["dropped"], "errors": errors, "stopped": stopped,
         "wall_s": round(wall, 3), "frames_per_s": round(n / wall, 3) if wall > 0 else None,
         "latency_ms": percentiles(latencies), "server_latency_ms": percentiles(server_latencies),
-        "weak_frames": weak, "timings_ms_mean": {k: round(stage_ms[k] / n, 3) for k in sorted(stage_ms)},
+        "weak_frames": weak, "timings_ms_mean": stage_ms.means(),
         "server_bye": bye, "settings": client.ready.get("settings"),
     }
 
@@ -298,7 +297,6 @@ def stream_command(args) -> int:
     from ..io.poses import write_tum_trajectory
     from ..io.recording import ReadAhead, open_recording
     from ..recon.tracking import ate_against
-    from ..runner import Progress, remove_earlier, writer_threads
 
     rec = open_recording(args.recording)
     indices = select_frames(args.frames or "", len(rec), args.recording)

@@ -220,7 +220,8 @@ def generate(cfg: SynthConfig, log: Callable[[str], None] | None = print) -> Pat
     if final.exists() and (not final.is_dir() or any(final.iterdir())):
         raise ValueError(f"--out {final}: exists and is not an empty folder; remove it or choose another")
     say = log or (lambda _msg: None)
-    out = final.resolve().with_name(final.resolve().name + ".partial")   # "." and a link to a folder have a name
+    resolved = final.resolve()   # "." and a link to a folder have a name
+    out = resolved.with_name(resolved.name + ".partial")
     if out.exists():
         say(f"removing {out}, an interrupted run's")
         shutil.rmtree(out)
