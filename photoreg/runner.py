@@ -261,7 +261,8 @@ def run_session(s: Session, quiet: bool = False, on_frame: Callable[[int, int], 
         if rec.has_poses:  # recorded poses were withheld: score the tracked trajectory against them
             from .recon.tracking import ate_against
 
-            summary["tracking"].update(ate_against(pipe.tracker.stats.poses, rec.poses))
+            summary["tracking"].update(ate_against({r.index: r.pose for r in results if r.pose is not None},
+                                                   rec.poses))
     write_json(out / "summary.json", summary)
     k = s.output.pictures_every
     pictures = {f"{r.index:06d}" for n, r in enumerate(results) if k and n % k == 0}

@@ -18,7 +18,8 @@ from photoreg.lighting.visualize import lit_sphere, tonemap
 from photoreg.pipeline import Pipeline
 from photoreg.preprocess import prepare
 from photoreg.recon.fusion import FusionConfig, TSDFVolume
-from photoreg.recon.tracking import MAX_PREDICT_S, Tracker, _View, ate_rmse
+from photoreg.recon.tracking import FIT_BINS, MAX_LISTED, MAX_PREDICT_S, RECENT_FITS, Tracker, _View, ate_rmse
+from photoreg.types import Intrinsics
 
 
 def _angle_deg(T: np.ndarray) -> float:
@@ -62,6 +63,27 @@ def test_ate_is_zero_for_a_rigidly_moved_copy_and_measures_noise():
         ate_rmse({0: np.eye(4)}, gt)
 
 
+def test_tracking_stats_stay_bounded_over_a_long_stream():
+    """A live connection tracks for hours: the stats list the first MAX_LISTED failures and count the rest, keep the
+    recent fitness values alone and the median of all from a histogram (every frame's pose and fitness kept grew them
+    350 bytes a frame, 38 MB an hour at 30 Hz)."""
+    tracker = _tracker(Intrinsics(64, 48, 56.0, 56.0, 31.5, 23.5, 5000.0))
+    assert tracker.report() == {"frames": 0, "failures": [], "median_fitness": None}
+    fits = np.random.default_rng(0).uniform(0.3, 1.0, 10001)
+    for f in [*fits, 1.0]:
+        tracker.stats.fit(float(f))
+    for i in range(MAX_LISTED + 50):
+        tracker.stats.fail(i, "covered")
+    report = tracker.report()
+    assert len(report["failures"]) == MAX_LISTED and report["failures"][-1]["frame"] == MAX_LISTED - 1
+    assert report["failures_not_listed"] == 50
+    assert abs(report["median_fitness"] - np.median([*fits, 1.0])) <= 0.5 / FIT_BINS + 1e-12
+    assert list(tracker.stats.recent) == [*fits[1 - RECENT_FITS:], 1.0]
+    one = _tracker(Intrinsics(64, 48, 56.0, 56.0, 31.5, 23.5, 5000.0))
+    one.stats.fit(0.9731)
+    assert one.report()["median_fitness"] == pytest.approx(0.9735) and "failures_not_listed" not in one.report()
+
+
 def test_tracking_frames_far_apart_on_tum(data_dir, tmp_path):
     """Every 16th frame of fr1_rpy (half a second and 20-60 degrees of turn apart, as a live stream that drops
     frames hands them over): the predicted and the feature-matched guesses keep the trajectory on the motion
@@ -91,21 +113,25 @@ def test_tracking_frames_far_apart_on_tum(data_dir, tmp_path):
 
 
 def _covered(rec, frames: range, covered: range):
-    """The tracker's stats after a pipeline ran on `frames` of `rec` with the `covered` ones black, with no depth
-    (a hand over the lens while the camera moves on)."""
+    """The tracker's stats and the tracked poses (frame index -> 4x4, the frames that failed left out) after a
+    pipeline ran on `frames` of `rec` with the `covered` ones black, with no depth (a hand over the lens while the
+    camera moves on)."""
     session = Session(device="cpu")
     session.recording.use_poses = False
     session.lighting.rays, session.lighting.bands, session.lighting.stride = 8, 3, 8
-    pipe = Pipeline(session, rec.intrinsics)
+    pipe, poses = Pipeline(session, rec.intrinsics), {}
     try:
         for i in frames:
             frame = rec.frame(i)
             if i in covered:
                 frame = dataclasses.replace(frame, color=np.zeros_like(frame.color), depth=np.zeros_like(frame.depth))
-            assert np.isfinite(pipe.process(frame).lighting.sh).all()
+            r = pipe.process(frame)
+            assert np.isfinite(r.lighting.sh).all()
+            if r.pose is not None:
+                poses[i] = r.pose
     finally:
         pipe.close()
-    return pipe.tracker.stats
+    return pipe.tracker.stats, poses
 
 
 def test_tracking_resumes_after_the_camera_is_covered(data_dir):
@@ -113,24 +139,24 @@ def test_tracking_resumes_after_the_camera_is_covered(data_dir):
     are reported (in Open3D's words, without its colour codes and C++ location), and frame 45 on track again against
     frame 29 (the features); from a standing start every one of the 15 frames after them failed too."""
     rec = open_recording(data_dir / "recordings" / "tum_fr1_rpy")
-    stats = _covered(rec, range(60), range(30, 45))
+    stats, poses = _covered(rec, range(60), range(30, 45))
     assert [i for i, _ in stats.failures] == list(range(30, 45))
     assert all("odometry failed: Singular 6x6" in r and "\x1b" not in r and "Open3D" not in r
                for _, r in stats.failures)
-    assert sorted(stats.poses) == [*range(30), *range(45, 60)]
-    assert ate_rmse(stats.poses, {i: rec.poses[i] for i in stats.poses})[0] < 0.03
+    assert sorted(poses) == [*range(30), *range(45, 60)]
+    assert ate_rmse(poses, {i: rec.poses[i] for i in poses})[0] < 0.03
 
 
 def test_tracking_starts_at_the_first_frame_with_depth(data_dir):
     """fr1_rpy's first 3 frames covered: tracking starts at frame 3, which defines the world, and the frames after
     track; started at a covered frame 0 instead, every later frame failed (an empty model: odometry singular)."""
     rec = open_recording(data_dir / "recordings" / "tum_fr1_rpy")
-    stats = _covered(rec, range(12), range(3))
+    stats, poses = _covered(rec, range(12), range(3))
     assert [i for i, _ in stats.failures] == [0, 1, 2]
     assert all("tracking not started: 0.0% of the pixels have depth" in r for _, r in stats.failures)
-    assert sorted(stats.poses) == list(range(3, 12)) and np.array_equal(stats.poses[3], np.eye(4))
+    assert sorted(poses) == list(range(3, 12)) and np.array_equal(poses[3], np.eye(4))
     start = np.linalg.inv(rec.poses[3])   # the recorded poses in the world of frame 3
-    assert ate_rmse(stats.poses, {i: start @ rec.poses[i] for i in stats.poses})[0] < 0.02
+    assert ate_rmse(poses, {i: start @ rec.poses[i] for i in poses})[0] < 0.02
 
 
 def test_a_camera_that_comes_back_elsewhere_is_lost_not_misplaced(data_dir):
@@ -138,10 +164,10 @@ def test_a_camera_that_comes_back_elsewhere_is_lost_not_misplaced(data_dir):
     the last tracked frame, and each frame after is reported lost. Without the features' confirmation a room's
     planes fitted frame 154 from rest 1.25 m and 54 degrees off (fitness 0.98) and every frame after followed it."""
     rec = open_recording(data_dir / "recordings" / "iclnuim_livingroom1")
-    stats = _covered(rec, [*range(60), *range(60, 150, 30), *range(150, 160)], range(60, 150))
-    assert sorted(stats.poses) == list(range(60))
+    stats, poses = _covered(rec, [*range(60), *range(60, 150, 30), *range(150, 160)], range(60, 150))
+    assert sorted(poses) == list(range(60))
     assert all("lost since the last tracked frame" in reason for i, reason in stats.failures if i >= 150)
-    assert ate_rmse(stats.poses, {i: rec.poses[i] for i in stats.poses})[0] < 0.03
+    assert ate_rmse(poses, {i: rec.poses[i] for i in poses})[0] < 0.03
 
 
 def test_matched_features_give_the_recorded_motion(data_dir):

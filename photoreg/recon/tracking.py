@@ -20,6 +20,7 @@ is taken.
 """
 from __future__ import annotations
 
+from collections import deque
 from dataclasses import dataclass, field
 
 import cv2
@@ -51,6 +52,8 @@ MIN_PNP_INLIERS = 12  # fewer RANSAC inliers give no matched guess
 # that starts facing nothing within depth_max, or covered) is not taken, the next is tried (a 12 x 12 patch of depth
 # as the first frame left every later frame's odometry singular)
 MIN_START_DEPTH = 0.1
+MAX_LISTED = 100      # failures listed by the report, the rest counted (a covered camera fails 30 times a second)
+FIT_BINS = 1000       # the fitness's histogram over [0, 1]: its median to half a thousandth
 
 
 class _View:
@@ -75,10 +78,31 @@ class _View:
 
 @dataclass
 class TrackingStats:
+    """What the report needs of the frames tracked, its size bounded however long the stream (a live connection
+    tracks for hours; every frame's pose and fitness kept grew it 350 bytes a frame): the failures counted and the
+    first MAX_LISTED listed, the fitness's recent values (_doubtful) and a histogram for its median. The tracked poses
+    are the frames' own (FrameResult.pose)."""
     frames: int = 0
-    failures: list = field(default_factory=list)   # [(frame index, reason)]
-    fitness: list = field(default_factory=list)
-    poses: dict = field(default_factory=dict)      # frame index -> 4x4 camera-to-world
+    failed: int = 0
+    failures: list = field(default_factory=list)   # [(frame index, reason)] of the first MAX_LISTED failures
+    recent: deque = field(default_factory=lambda: deque(maxlen=RECENT_FITS))   # the latest fitness values
+    fits: np.ndarray = field(default_factory=lambda: np.zeros(FIT_BINS, np.int64))   # fitness histogram
+
+    def fail(self, index: int, reason: str) -> None:
+        self.failed += 1
+        if len(self.failures) < MAX_LISTED:
+            self.failures.append((index, reason))
+
+    def fit(self, fitness: float) -> None:
+        self.recent.append(fitness)
+        self.fits[min(int(fitness * FIT_BINS), FIT_BINS - 1)] += 1
+
+    def median_fitness(self) -> float | None:
+        """The median of every tracked frame's fitness (its histogram bin's centre), None before one."""
+        n = int(self.fits.sum())
+        if n == 0:
+            return None
+        return (int(np.searchsorted(np.cumsum(self.fits), (n + 1) / 2)) + 0.5) / FIT_BINS
 
 
 class Tracker:
@@ -126,10 +150,9 @@ class Tracker:
             if prep.valid_depth_fraction < MIN_START_DEPTH:
                 reason = (f"frame {frame.index}: tracking not started: {prep.valid_depth_fraction:.1%} of the pixels "
                           f"have depth, the first tracked frame needs {MIN_START_DEPTH:.0%}")
-                self.stats.failures.append((frame.index, reason))
+                self.stats.fail(frame.index, reason)
                 return None, [reason]
             self.pose, self.time, self._key = np.eye(4), frame.timestamp, view
-            self.stats.poses[frame.index] = self.pose.copy()
             return self.pose, []
         if self.model is None:
             self.update_model()
@@ -163,13 +186,12 @@ class Tracker:
         self.lost = not fits
         if not fits:
             reason = "; ".join(reasons)
-            self.stats.failures.append((frame.index, reason))
+            self.stats.fail(frame.index, reason)
             return None, [f"frame {frame.index}: tracking failed: {reason}"]
         fitness, T = max(fits, key=lambda f: f[0])
-        self.stats.fitness.append(fitness)
+        self.stats.fit(fitness)
         self.velocity = (T, frame.timestamp - self.time)
         self.pose, self.time, self._key = self.pose @ T, frame.timestamp, view
-        self.stats.poses[frame.index] = self.pose.copy()
         self.model = None  # ray-cast again after this frame is fused
         return self.pose, []
 
@@ -177,7 +199,7 @@ class Tracker:
         """Whether an alignment needs the matched features' word: it corrected its guess by more than DOUBT_M or
         DOUBT_DEG, or fits worse than DOUBT_FIT of the recent frames' median fitness."""
         moved, angle = _size(np.linalg.solve(start, T))
-        recent = self.stats.fitness[-RECENT_FITS:]
+        recent = self.stats.recent
         return moved > DOUBT_M or angle > DOUBT_DEG or (bool(recent) and fitness < DOUBT_FIT * np.median(recent))
 
     def matched(self, view: _View) -> np.ndarray | None:
@@ -254,9 +276,14 @@ class Tracker:
         self.model = self._rgbd(maps.depth)
 
     def report(self) -> dict:
+        """summary.json's "tracking": frames, failures (the first MAX_LISTED; "failures_not_listed" counts the rest),
+        median fitness."""
         s = self.stats
-        return {"frames": s.frames, "failures": [{"frame": i, "reason": r} for i, r in s.failures],
-                "median_fitness": float(np.median(s.fitness)) if s.fitness else None}
+        out = {"frames": s.frames, "failures": [{"frame": i, "reason": r} for i, r in s.failures],
+               "median_fitness": s.median_fitness()}
+        if s.failed > len(s.failures):
+            out["failures_not_listed"] = s.failed - len(s.failures)
+        return out
 
 
 def _size(T: np.ndarray) -> tuple[float, float]:
