@@ -326,6 +326,10 @@ class Pipeline:
             previous = self.filter.prediction() if self.filter is not None else self.prev_F
         sun, sol, own = self._lighting(grid, current, data, previous, t)
         self.last_solution = sol
+        # nothing to fit a light on (a black frame without a history of samples): the solve returned the previous
+        # lighting, and the previous frame's traced light stays with it (dropped, the frame's shadows were F's lobe
+        # and the filtered irradiance started again at the next frame)
+        keep_light = sun is None and sol.diagnostics.n_samples == 0 and self.prev_from[1] is not None
         with self._timed(t, "solve"):
             F, diag = sol.lighting, sol.diagnostics
             if sun is not None:
@@ -358,11 +362,15 @@ class Pipeline:
                 filtered, diag.change_detected = self.filter.update(sol, new_view)
                 # the filter weighs the channels apart: a white-mode light is one colour again
                 F = Lighting(sh.one_chroma(filtered) if lc.mode == "white" else filtered)
-                e = self.filter.irradiance(None if sun is None else sol.terms["sun"], diag.change_detected,
-                                           None if sun is None else sun.direction)
+                e = None if keep_light else self.filter.irradiance(None if sun is None else sol.terms["sun"],
+                                                                   diag.change_detected,
+                                                                   None if sun is None else sun.direction)
                 if e is not None:   # the renderers draw the light with the filtered irradiance
                     diag.sun["irradiance_frame"] = diag.sun["irradiance"]
                     diag.sun["irradiance"] = np.round(e, 7).tolist()
+            if keep_light:
+                diag.sun = dict(self.prev_from[1])
+                diag.notes.append(f"no samples: the traced light of frame {self.prev_from[0]} held")
             if self.surface is not None:
                 self.surface.update(points[seen], radiance[seen] / gain)
         return F, diag, gain

@@ -315,11 +315,13 @@ def test_the_renderers_draw_the_traced_light_filtered():
     assert step(drawn) < 0.4 * step(own), (step(drawn), step(own))
 
 
-def _demo_lighting(frames: int, change=None) -> list:
+def _demo_lighting(frames: int, change=None, history: int | None = None) -> list:
     """The demo's first `frames` frames through its session's pipeline without its object, frame i changed by
-    change(i, frame) where given; their FrameResults."""
+    change(i, frame) where given, with lighting.history = `history` where given; their FrameResults."""
     s = load_session(REPO / "data" / "demo" / "session.toml")
     s.device, s.objects = "cpu", []
+    if history is not None:
+        s.lighting.history = history
     rec = open_recording(s.recording.path, fmt=s.recording.format)
     pipe = pipeline_module.Pipeline(s, rec.intrinsics)
     try:
@@ -345,14 +347,21 @@ def test_a_first_frame_with_a_patch_of_depth_does_not_set_the_lighting_s_scale()
         assert b.lighting.sh[:, 0] == pytest.approx(a.lighting.sh[:, 0], rel=0.1), b.index
 
 
-def test_a_black_frame_keeps_the_held_light():
+@pytest.mark.parametrize("history", [None, 0])
+def test_a_black_frame_keeps_the_held_light(history):
     """Frame 2 black (nothing to search the light in): it keeps the light held since frame 0, whose irradiance goes
-    on being filtered (before: frame 2 had none, which dropped its shadow, and frame 3's filter started again)."""
-    results = _demo_lighting(5, lambda i, f: dataclasses.replace(f, color=np.zeros_like(f.color)) if i == 2 else f)
+    on being filtered (before: frame 2 had none, which dropped its shadow, and frame 3's filter started again). With
+    the history of samples the joint solve still fits it on the earlier views' samples; without (history 0) the solve
+    has no sample and returns the previous lighting, and frame 1's light is held with it."""
+    results = _demo_lighting(5, lambda i, f: dataclasses.replace(f, color=np.zeros_like(f.color)) if i == 2 else f,
+                             history)
     suns = [r.diagnostics.sun for r in results]
     assert results[2].diagnostics.weak and all(sun is not None for sun in suns)
     assert np.degrees(np.arccos(np.clip(np.dot(suns[1]["direction"], suns[2]["direction"]), -1, 1))) < 5
     assert suns[3]["irradiance"] != suns[3]["irradiance_frame"]
+    if history == 0:
+        assert suns[2] == suns[1] and "no samples: the traced light of frame 1 held" in results[2].diagnostics.notes
+        assert np.array_equal(results[2].lighting.sh, results[1].lighting.sh)
 
 
 def test_a_frame_without_a_pose_repeats_the_previous_estimate_and_its_light():
