@@ -220,6 +220,24 @@ def test_bench_speed_times_the_render_stage_of_a_session(tmp_path, capsys):
         assert f"BLAS threads {res['blas_threads']})" in capsys.readouterr().out
 
 
+def test_bench_speed_tracks_a_recording_without_poses(tmp_path, capsys):
+    """A recording without poses is timed with the camera tracked, as `photoreg run` processes it (before: no frame
+    was fused or lit, and the benchmark printed thousands of frames/s); a selection past its end and a negative
+    warm-up are refused by name."""
+    rec = write_recording(tmp_path / "rec", K80, 4, with_gt=False)
+    (rec / "groundtruth.txt").unlink()
+    out = tmp_path / "figures.json"
+    assert main(["bench", "speed", str(rec), "--device", "cpu", "--frames", "0:4", "--warmup", "1", "--rays", "16",
+                 "--json", str(out)]) == 0
+    res = json.loads(out.read_text())
+    assert "has no poses: tracking the camera instead" in capsys.readouterr().err
+    assert res["tracked"] and res["ms_mean"]["fuse"] > 0 and res["ms_mean"]["solve"] > 0
+    assert main(["bench", "speed", str(rec), "--device", "cpu", "--frames", "10:20"]) == 2
+    assert "no frames selected (recording has 4, --frames '10:20')" in capsys.readouterr().err
+    assert main(["bench", "speed", str(rec), "--device", "cpu", "--warmup", "-3"]) == 2
+    assert "--warmup must be >= 0, got -3" in capsys.readouterr().err
+
+
 def test_bench_speed_keeps_the_session_s_settings_but_the_options_given(tmp_path):
     """A session's own lighting settings and frames are what `photoreg bench speed` times, each replaced only by an
     option given (before, the options' defaults, stride 4 / 64 rays / 3 bands, every frame, the traced light, frames

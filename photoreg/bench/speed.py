@@ -12,7 +12,7 @@ import sys
 
 import numpy as np
 
-from ..config import Session, load_session, parse_frames, validate
+from ..config import Session, load_session, select_frames, validate
 from ..io.atomic import check_output_file, write_json
 
 BARE_SETTINGS = (4, 64, 3)   # a recording folder's lighting stride, rays and bands (the benchmarks' live setting)
@@ -44,10 +44,15 @@ def bench_recording(session: Session, warmup: int = 2) -> dict:
     from ..kernels.launch import cpu_threads
     from ..pipeline import Pipeline
 
+    if warmup < 0:
+        raise ValueError(f"bench: --warmup must be >= 0, got {warmup}")
     rec = open_recording(session.recording.path, fmt=session.recording.format)
-    indices = parse_frames(session.frames, len(rec))
+    indices = select_frames(session.frames, len(rec), session.recording.path)
     if len(indices) <= warmup:
         raise ValueError(f"bench: need more than {warmup} frames (warm-up), got {len(indices)}")
+    if session.recording.use_poses and not rec.has_poses:   # as photoreg run does: a frame without a pose is not fused
+        print(f"bench: {session.recording.path} has no poses: tracking the camera instead", file=sys.stderr)
+        session.recording.use_poses = False
     pipe = Pipeline(session, rec.intrinsics)
     timings, estimated = [], []
     try:
