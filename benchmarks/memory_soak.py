@@ -96,7 +96,7 @@ def main() -> None:
                 row = {"config": config, "frame": k + 1, "rss_mb": round(rss_mb(), 1),
                        "s": round(time.perf_counter() - t0, 1),
                        "history_rows": None if pipe.history is None else len(pipe.history),
-                       "tracked_poses": None if pipe.tracker is None else len(pipe.tracker.stats.poses)}
+                       "tracking_failures_listed": None if pipe.tracker is None else len(pipe.tracker.stats.failures)}
                 print(json.dumps(row), flush=True)
     finally:
         pipe.close()
