@@ -155,11 +155,48 @@ def test_errors_are_clear(tmp_path):
     out, rec = write_run(tmp_path, gt, [gt, gt, gt], n_rgb=2)   # a run of another recording than --gt
     with pytest.raises(ValueError, match=r"holds frame\(s\) 2 that .*rec \(2 frames\) does not have"):
         score(out, rec)
+    bad = {"frame": 0, "sh": gt.tolist(), "diagnostics": {"sun": {"direction": ["a", "b", "c"]}}}
+    out, rec = write_run(tmp_path, gt, [json.dumps(bad)])
+    with pytest.raises(ValueError, match=r"lighting\.jsonl:1: diagnostics\.sun\.direction must be 3 numbers or null"):
+        score(out, rec)
+    out, rec = write_run(tmp_path, gt, [json.dumps({"frame": 0, "sh": gt.tolist(), "pose": [[1, 0], [0, 1]]})])
+    with pytest.raises(ValueError, match=r"lighting\.jsonl:1: pose must be 4 x 4 numbers or null"):
+        score(out, rec)
+    out, rec = write_run(tmp_path, gt, [json.dumps({"frame": 0, "sh": gt.tolist(), "timestamp": "noon"})])
+    with pytest.raises(ValueError, match=r"lighting\.jsonl:1: timestamp must be a number or null, got 'noon'"):
+        score(out, rec)
     out, rec = write_run(tmp_path, gt, [gt])
+    for text in ("[]", "{not json"):   # a hand-edited summary: named, not an AttributeError
+        (out / "summary.json").write_text(text)
+        with pytest.raises(ValueError, match=r"summary\.json: (expected a JSON object|not readable as JSON)"):
+            score(out, rec)
+    (out / "summary.json").unlink()
     for text in ("{}", "{not json"):   # a scene.json, but not the generator's: named, not a KeyError
         (rec / "scene.json").write_text(text)
         with pytest.raises(ValueError, match=r"scene\.json: not as `photoreg synth` writes it"):
             score(out, rec)
+
+
+def test_a_run_of_another_recording_is_refused_by_its_timestamps(tmp_path):
+    """--gt must be the recording the run processed: frames whose timestamps are not the recording's are refused
+    (before: scored against the wrong ground truth, a believable table); a summary naming another folder whose frames
+    agree (a moved or copied recording) gives a note."""
+    gt = sun_sky_gt(bands=3)
+    other = {"frame": 1, "timestamp": 5.0, "bands": 3, "sh": gt.tolist()}
+    out, rec = write_run(tmp_path, gt, [gt, json.dumps(other)], n_rgb=3)
+    (out / "summary.json").write_text(json.dumps({"recording": "/data/elsewhere"}))
+    with pytest.raises(ValueError, match=r"frame 1 has timestamp 5\.000000 s, .*rec 0\.100000 s \(1 of the run's 2 "
+                                         r"frames differ\): is --gt the recording it ran on \(/data/elsewhere\)\?"):
+        score(out, rec)
+    (out / "summary.json").unlink()
+    out, rec = write_run(tmp_path, gt, [gt, gt], n_rgb=3)
+    notes = score(out, rec)["lighting"]["notes"]
+    assert not any("the run read" in n for n in notes)
+    (out / "summary.json").write_text(json.dumps({"recording": "/data/elsewhere"}))
+    notes = score(out, rec)["lighting"]["notes"]
+    assert f"the run read /data/elsewhere, scored against {rec} (their frames' timestamps agree)" in notes
+    (out / "summary.json").write_text(json.dumps({"recording": str(rec)}))
+    assert not any("the run read" in n for n in score(out, rec)["lighting"]["notes"])
 
 
 def test_score_command_prints_and_writes_json(tmp_path, capsys):

@@ -99,16 +99,36 @@ def true_light(recording: str | Path) -> tuple[np.ndarray, dict | None]:
                "irradiance": (exposure * sun.irradiance * np.asarray(sun.colour)).tolist(), "gain": 1.0}
 
 
-def load_lighting(out: str | Path) -> tuple[dict[int, np.ndarray], dict[int, list | None], dict[int, list | None]]:
-    """From OUT/lighting.jsonl, frame index -> SH (3, B*B) (non-finite SH kept as is, 'sh': null -> NaN), frame
-    index -> the traced light's direction (diagnostics.sun.direction; None where no light was held) and frame index ->
-    the pose it was lit from (None where it had none)."""
+@dataclass
+class RunLighting:
+    """A run's OUT/lighting.jsonl by frame index."""
+
+    sh: dict[int, np.ndarray]             # SH (3, B*B); non-finite kept as is, 'sh': null -> NaN
+    lights: dict[int, list | None]        # the traced light's direction (diagnostics.sun.direction), None: none held
+    poses: dict[int, np.ndarray | None]   # the 4x4 pose the frame was lit from, None where it had none
+    timestamps: dict[int, float | None]   # the frame's timestamp (s), None where the line gives none
+
+
+def _numbers(value, shape: tuple[int, ...], where: str, field_name: str) -> np.ndarray | None:
+    """`value` as float64 of `shape`, None for null; ValueError naming `where` and the field otherwise."""
+    if value is None:
+        return None
+    try:
+        arr = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        arr = None
+    if arr is None or arr.shape != shape:
+        size = " x ".join(map(str, shape)) + " numbers" if shape else "a number"
+        raise ValueError(f"{where}: {field_name} must be {size} or null, got {value!r}")
+    return arr
+
+
+def load_lighting(out: str | Path) -> RunLighting:
+    """OUT/lighting.jsonl read and checked line by line (errors name the file, line and field)."""
     path = Path(out) / "lighting.jsonl"
     if not path.is_file():
         raise FileNotFoundError(f"{path}: no per-frame lighting (lighting.jsonl) in {out}")
-    frames: dict[int, np.ndarray] = {}
-    lights: dict[int, list | None] = {}
-    poses: dict[int, list | None] = {}
+    run = RunLighting({}, {}, {}, {})
     lines: dict[int, int] = {}
     with path.open() as f:
         for lineno, line in enumerate(f, 1):
@@ -124,22 +144,56 @@ def load_lighting(out: str | Path) -> tuple[dict[int, np.ndarray], dict[int, lis
             frame = obj["frame"]
             if isinstance(frame, bool) or not isinstance(frame, int) or frame < 0:
                 raise ValueError(f"{where}: 'frame' must be a non-negative integer, got {frame!r}")
-            if frame in frames:
+            if frame in run.sh:
                 raise ValueError(f"{where}: frame {frame} already given on line {lines[frame]}")
             bands = obj.get("bands")
             if obj["sh"] is None:
-                frames[frame] = np.full((3, (bands or 1) ** 2), np.nan)
+                run.sh[frame] = np.full((3, (bands or 1) ** 2), np.nan)
             else:
-                frames[frame] = _sh_array(obj["sh"], bands, where)
+                run.sh[frame] = _sh_array(obj["sh"], bands, where)
             light = (obj.get("diagnostics") or {}).get("sun")
-            lights[frame] = light.get("direction") if isinstance(light, dict) else None
-            if lights[frame] is not None and np.asarray(lights[frame]).shape != (3,):
-                raise ValueError(f"{where}: diagnostics.sun.direction must be 3 numbers, got {lights[frame]!r}")
-            poses[frame] = obj.get("pose")
+            direction = _numbers(light.get("direction") if isinstance(light, dict) else None, (3,), where,
+                                 "diagnostics.sun.direction")
+            run.lights[frame] = None if direction is None else direction.tolist()
+            run.poses[frame] = _numbers(obj.get("pose"), (4, 4), where, "pose")
+            stamp = _numbers(obj.get("timestamp"), (), where, "timestamp")
+            run.timestamps[frame] = None if stamp is None else float(stamp)
             lines[frame] = lineno
-    if not frames:
+    if not run.sh:
         raise ValueError(f"{path}: no frames (an empty run's file?)")
-    return frames, lights, poses
+    return run
+
+
+def read_summary(out: str | Path) -> dict:
+    """OUT/summary.json ({} where the run wrote none); ValueError naming it where it is not a JSON object."""
+    path = Path(out) / "summary.json"
+    if not path.is_file():
+        return {}
+    try:
+        obj = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, ValueError) as e:
+        raise ValueError(f"{path}: not readable as JSON ({e})") from None
+    if not isinstance(obj, dict):
+        raise ValueError(f"{path}: expected a JSON object (a run's summary), got {type(obj).__name__}")
+    return obj
+
+
+def same_recording(out: str | Path, recording: str | Path, rec: Recording | None, summary: dict,
+                   timestamps: dict[int, float | None]) -> str | None:
+    """ValueError where the run's frames carry other timestamps than `rec`'s (--gt is not the recording it ran on); a
+    note where summary.json names another folder whose frames have the same timestamps (a moved or copied recording,
+    or another recording made alike: the generator's all start at 0 s), else None."""
+    if rec is not None:
+        off = [i for i, t in sorted(timestamps.items()) if t is not None and abs(t - rec.timestamps[i]) > 1e-3]
+        if off:
+            i, ran = off[0], summary.get("recording")
+            raise ValueError(f"{out}: frame {i} has timestamp {timestamps[i]:.6f} s, {recording} "
+                             f"{rec.timestamps[i]:.6f} s ({len(off)} of the run's {len(timestamps)} frames differ): is "
+                             "--gt the recording it ran on" + (f" ({ran})?" if isinstance(ran, str) else "?"))
+    ran = summary.get("recording")
+    if isinstance(ran, str) and Path(ran).is_absolute() and Path(ran).resolve() != Path(recording).resolve():
+        return f"the run read {ran}, scored against {recording} (their frames' timestamps agree)"
+    return None
 
 
 def recording_of(recording: str | Path) -> Recording | None:
@@ -294,55 +348,59 @@ def composite_flicker(out: str | Path, recording: str | Path) -> dict | None:
             "composite": metrics.image_flicker(comps, region), "camera": metrics.image_flicker(cams, region)}
 
 
-def selected_frames(out: str | Path, n: int) -> list[int]:
-    """The frames of an n-frame recording the run in `out` was asked for (summary.json's settings.frames, as --frames
-    gives them; every frame where it does not say)."""
+def selected_frames(summary: dict, n: int) -> list[int]:
+    """The frames of an n-frame recording the run was asked for (its summary's settings.frames, as --frames gives
+    them; every frame where it does not say)."""
+    settings = summary.get("settings")
     try:
-        spec = json.loads((Path(out) / "summary.json").read_text())["settings"]["frames"]
-        return parse_frames(spec, n)
-    except (OSError, ValueError, KeyError, TypeError):
+        return parse_frames(settings["frames"], n)
+    except (ValueError, KeyError, TypeError, AttributeError):
         return list(range(n))
 
 
-def tracked_to_world(out: str | Path, recording: str | Path, rec: Recording | None,
-                     poses: dict[int, list | None]) -> tuple[np.ndarray, int] | None:
-    """For a run that tracked the camera (summary.json: use_poses false), whose world is its first tracked camera's
-    frame: (the rotation into the recording's world, the frame whose recorded and tracked poses relate the two); None
-    for a run lit from the recorded poses. ValueError where no frame has both. `rec`: recording_of(recording)."""
-    try:
-        settings = json.loads((Path(out) / "summary.json").read_text()).get("settings", {})
-    except (OSError, ValueError):
-        return None
-    if settings.get("use_poses", True):
+def tracked_to_world(summary: dict, out: str | Path, recording: str | Path, rec: Recording | None,
+                     poses: dict[int, np.ndarray | None]) -> tuple[np.ndarray, int] | None:
+    """For a run that tracked the camera (its summary: settings.use_poses false), whose world is its first tracked
+    camera's frame: (the rotation into the recording's world, the frame whose recorded and tracked poses relate the
+    two); None for a run lit from the recorded poses. ValueError where no frame has both. `rec`:
+    recording_of(recording)."""
+    settings = summary.get("settings")
+    if not isinstance(settings, dict) or settings.get("use_poses", True):
         return None
     recorded = None if rec is None else rec.poses
     for i in sorted(poses):
         if poses[i] is not None and recorded is not None and i < len(recorded) and recorded[i] is not None:
-            return (recorded[i] @ np.linalg.inv(np.asarray(poses[i], np.float64)))[:3, :3], i
+            return (recorded[i] @ np.linalg.inv(poses[i]))[:3, :3], i
     raise ValueError(f"{out}: a tracked run (--no-poses), its lighting in its first camera's frame, and no frame of "
                      f"{recording} has a recorded pose to turn it into the ground truth's world")
 
 
 def score(out: str | Path, recording: str | Path, composite: bool = False) -> dict:
     """All scores of run folder `out` against `recording` as a JSON-ready dict. A tracked run's lighting is turned
-    into the recording's world first (tracked_to_world)."""
+    into the recording's world first (tracked_to_world); a run whose frames' timestamps are not the recording's is
+    refused (same_recording)."""
     gt = load_gt(recording)
     sun = true_light(recording)[1] if (Path(recording) / "scene.json").is_file() else None   # a generated one's
-    estimates, lights, poses = load_lighting(out)
-    rec = recording_of(recording)   # opened once: its frame count and, for a tracked run, its poses
+    run = load_lighting(out)
+    summary = read_summary(out)
+    rec = recording_of(recording)   # opened once: its frame count and timestamps and, for a tracked run, its poses
     n = 0 if rec is None else len(rec)
-    foreign = sorted(i for i in estimates if i >= n) if n else []
+    foreign = sorted(i for i in run.sh if i >= n) if n else []
     if foreign:
         listed = ", ".join(map(str, foreign[:5])) + (", ..." if len(foreign) > 5 else "")
         raise ValueError(f"{out} holds frame(s) {listed} that {recording} ({n} frames) does not have: is --gt the "
                          "recording it ran on?")
-    turn = tracked_to_world(out, recording, rec, poses)
+    moved = same_recording(out, recording, rec, summary, run.timestamps)
+    estimates, lights = run.sh, run.lights
+    turn = tracked_to_world(summary, out, recording, rec, run.poses)
     if turn is not None:
         R, anchor = turn
         estimates = {i: sh.rotate(e, R) for i, e in estimates.items()}
         lights = {i: None if d is None else (R @ np.asarray(d, np.float64)).tolist() for i, d in lights.items()}
     result = {"out": str(out), "recording": str(recording),
-              "lighting": score_lighting(estimates, gt, selected_frames(out, n), lights, sun)}
+              "lighting": score_lighting(estimates, gt, selected_frames(summary, n), lights, sun)}
+    if moved is not None:
+        result["lighting"]["notes"].append(moved)
     if turn is not None:
         result["lighting"]["notes"].append(f"a tracked run (--no-poses): its lighting turned into the recording's "
                                            f"world by frame {anchor}'s recorded and tracked poses")
