@@ -150,7 +150,8 @@ def build_parser() -> argparse.ArgumentParser:
                                                            "using recorded poses")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
 
-    p = sub.add_parser("bench", help="speed benchmarks: per-stage ms of the full pipeline on one device")
+    p = sub.add_parser("bench", help="benchmarks: speed (per-stage ms), the speed-against-error sweep, the shadow "
+                                     "renderers side by side")
     bsub = p.add_subparsers(dest="bench_kind", required=True)
     b = bsub.add_parser("speed", help="per-stage milliseconds on a recording")
     b.add_argument("recording", help="recording folder, or a SESSION.toml: its objects are inserted and the "

@@ -138,6 +138,14 @@ def test_sweep_option_errors(tmp_path, capsys):
     assert f"{tmp_path / 'cut.csv'}:2: not a whole row of a speed/error table" in capsys.readouterr().err
     assert main(["bench", "speed", str(rec), "--json", str(tmp_path / "cut.csv" / "x.json")]) == 2
     assert f"(--json): {tmp_path / 'cut.csv'} is a file, not a folder" in capsys.readouterr().err
+    # every setting of the grid checked before a scene is rendered (before: after, and without naming the options)
+    scenes = tmp_path / "scenes"
+    assert main(["bench", "sweep", "--scenes", "plane", "--size", "32x24", "--frames", "3", "--spp", "1",
+                 "--synth-dir", str(scenes), "--strides", "4", "--rays", "16", "--bands", "3,40", "--csv",
+                 str(tmp_path / "b.csv"), "--plot", str(tmp_path / "b.png")]) == 2
+    err = capsys.readouterr().err
+    assert "--strides / --rays / --bands / --voxel-sizes: the setting s4 r16 b40 v0.01: " in err
+    assert "lighting.bands must be in 1..8" in err and not scenes.exists()
 
 
 # --- row-split CPU launches ------------------------------------------------------------------------

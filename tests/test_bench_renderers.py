@@ -7,6 +7,7 @@ import json
 import numpy as np
 import pytest
 
+from photoreg.bench.scenes import cached_scene
 from photoreg.cli import main
 from photoreg.render.registry import RENDERERS
 
@@ -51,6 +52,10 @@ def test_bench_renderers_tiny(tmp_path, capsys):
     assert "--scenes: unknown scene kind(s) 'bogus'" in capsys.readouterr().err
     assert main([*args[:3], "32x24", *args[4:], "--scenes", "plane"]) == 2
     assert "holds a 64x48 run of 3 frames, this one is 32x24 of 3" in capsys.readouterr().err
+    assert main(args + ["--scenes", "plane", "--renderers", "none,bogus"]) == 2
+    assert "--renderers: unknown renderer(s) 'bogus'; choose from" in capsys.readouterr().err
+    assert main([*args[:13], str(tmp_path / "r.md"), *args[14:], "--scenes", "plane"]) == 2   # --results-dir a file
+    assert f"output folder {tmp_path / 'r.md'} (--results-dir) is a file" in capsys.readouterr().err
     (res / "renderers_old_1spp.json").write_text("{")
     assert main(args + ["--scenes", "plane"]) == 2
     assert f"{res / 'renderers_old_1spp.json'}: not a `photoreg bench renderers` result" in capsys.readouterr().err
@@ -74,3 +79,10 @@ def test_bench_renderers_inserted_mesh(tmp_path):
     assert "--insert-mesh" in json.loads((scenes / "plane-64x48-3f-4spp-inserts-ico" / "scene.json").read_text())[
         "command"]
     assert "ground truth at 4 spp, inserted ico.obj" in (tmp_path / "r.md").read_text()
+    # another mesh of the same name is not taken for the cached scene's (the cache is named after the file's name)
+    (tmp_path / "other").mkdir()
+    (tmp_path / "other" / "ico.obj").write_text(mesh.read_text())
+    with pytest.raises(FileExistsError, match=f"cached with another mesh of that name \\({mesh}\\)"):
+        cached_scene(scenes, "plane", 64, 48, 3, 4, inserts="auto", insert_mesh=str(tmp_path / "other" / "ico.obj"))
+    assert cached_scene(scenes, "plane", 64, 48, 3, 4, inserts="auto", insert_mesh=str(mesh)) == \
+        scenes / "plane-64x48-3f-4spp-inserts-ico"

@@ -311,6 +311,11 @@ def test_composite_flicker_over_changed_pixels(tmp_path):
     gt_only = tmp_path / "gt_only"   # ground truth without the camera frames: no flicker to compare with
     gt_only.mkdir()
     assert composite_flicker(out, gt_only) is None
+    # one image has no pair to compare: no flicker figure (bench renderers --frames 1 wrote 0.0000, "perfectly
+    # stable"); nothing changed: zero
+    region = np.ones((4, 4), bool)
+    assert metrics.image_flicker([np.zeros((4, 4, 3))], region) is None
+    assert metrics.image_flicker([np.zeros((4, 4, 3))] * 2, ~region) == 0.0
 
 
 def test_true_light_of_a_generated_recording(tmp_path):

@@ -399,6 +399,26 @@ def test_refuses_non_empty_output(tmp_path, capsys):
     (tmp_path / "keep.txt").write_text("x")
     assert cli.main(["synth", "plane", "--out", str(tmp_path)]) == 2
     assert "not an empty folder" in capsys.readouterr().err
+    assert cli.main(["synth", "plane", "--out", str(tmp_path / "keep.txt" / "sub")]) == 2   # not a raw [Errno 20]
+    assert f"{tmp_path / 'keep.txt'} is a file, not a folder" in capsys.readouterr().err
+
+
+def test_input_files_are_recorded_by_absolute_path(tmp_path, monkeypatch):
+    """--insert-mesh (as --mesh and --env) given relative to the working folder goes into scene.json as an absolute
+    path: rerender_inserts (photoreg bench renderers) reads it from another folder (before: as typed, and the bench
+    failed after its last frame, 'mesh file not found')."""
+    for name in ("here", "elsewhere"):
+        (tmp_path / name).mkdir()
+    (tmp_path / "here" / "ball.obj").write_text(trimesh.exchange.obj.export_obj(trimesh.creation.icosphere(1)))
+    monkeypatch.chdir(tmp_path / "here")
+    rec = tmp_path / "rec"
+    assert cli.main(["synth", "plane", "--out", str(rec), "--frames", "1", "--size", "16x12", "--spp", "1",
+                     "--insert-frames", "0", "--insert-mesh", "ball.obj"]) == 0
+    meta = json.loads((rec / "scene.json").read_text())
+    assert meta["config"]["insert_mesh"] == str(tmp_path / "here" / "ball.obj")
+    assert f"--insert-mesh {tmp_path / 'here' / 'ball.obj'}" in meta["command"]
+    monkeypatch.chdir(tmp_path / "elsewhere")
+    assert sorted(rerender_inserts(rec)) == [0]
 
 
 

@@ -145,12 +145,14 @@ def changed_region(composites, cameras, tolerance: float = 1e-3) -> np.ndarray:
                    for c, k in zip(composites, cameras)], axis=0)
 
 
-def image_flicker(images, region: np.ndarray) -> float:
+def image_flicker(images, region: np.ndarray) -> float | None:
     """Flicker E of an image sequence itself: mean over `region` pixels (bool HxW), channels and
     consecutive pairs of exp(3 |I_t - I_(t-1)|) - 1, on linear images as they are (composites share the
-    camera's scale); 0 for fewer than two images or an empty region."""
+    camera's scale); None for fewer than two images (no pair: not a flicker of 0), 0 for an empty region."""
     imgs = [np.asarray(i, dtype=np.float64)[region] for i in images]
-    if len(imgs) < 2 or not region.any():
+    if len(imgs) < 2:
+        return None
+    if not region.any():
         return 0.0
     return float(np.mean([np.mean(np.exp(3.0 * np.abs(b - a)) - 1.0) for a, b in zip(imgs, imgs[1:])]))
 

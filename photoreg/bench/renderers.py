@@ -28,7 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..io.atomic import check_output_file, write_json, write_text
+from ..io.atomic import check_output_dir, check_output_file, write_json, write_text
 from ..lighting import sh
 from . import metrics
 from .scenes import SCENE_CACHE, cached_scene
@@ -120,6 +120,8 @@ def bench_scene(kind: str, orbit: Path, static: Path, device: str, renderers: di
         print(f"bench renderers: {kind}: no row 'baseline, object path-traced with other seeds' (it needs "
               "Mitsuba 3: pip install 'photoreg[synth]')", file=sys.stderr)
         return rows
+    print(f"bench renderers: {kind}: the insert frames path-traced again with other seeds", file=sys.stderr,
+          flush=True)
     again = rerender_inserts(orbit)
     rows.append(row("baseline, object path-traced with other seeds", [metrics.composite_metrics(
         metrics.no_shadow_baseline(t.camera, again[t.frame], t.mask), t.gt, t.roi) for t in truths], None, None))
@@ -210,7 +212,11 @@ def renderers_command(args) -> int:
     from .speed import device_name
 
     names = [n.strip() for n in args.renderers.split(",")] if args.renderers else sorted(RENDERERS)
-    renderers = {n: get_renderer(n) for n in names}      # an unknown name is an error listing the registered
+    unknown = [n for n in names if n not in RENDERERS]
+    if unknown:
+        raise ValueError(f"--renderers: unknown renderer(s) {', '.join(map(repr, unknown))}; choose from "
+                         f"{', '.join(sorted(RENDERERS))}")
+    renderers = {n: get_renderer(n) for n in names}
     kinds = [k.strip() for k in args.scenes.split(",")]
     unknown = [k for k in kinds if k not in SCENE_KINDS]
     if unknown:
@@ -219,6 +225,7 @@ def renderers_command(args) -> int:
     w, h = parse_size(args.size)
     check_output_file(args.md, "--md")
     check_output_file(args.plot, "--plot")
+    check_output_dir(args.results_dir, "--results-dir")
     cache = Path(args.synth_dir or SCENE_CACHE)
 
     def log(msg: str) -> None:

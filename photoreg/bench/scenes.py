@@ -2,6 +2,7 @@
 `photoreg bench sweep` and `photoreg bench renderers`."""
 from __future__ import annotations
 
+import json
 from pathlib import Path
 from typing import Callable
 
@@ -28,5 +29,11 @@ def cached_scene(cache: Path, kind: str, width: int, height: int, frames: int, s
         if log:
             log(f"generating {kind} ({width}x{height}, {frames} frames, {camera} camera) into {folder}")
         generate(SynthConfig(scene=kind, out=str(folder), frames=frames, width=width, height=height, spp=spp,
-                             camera=camera, insert_frames=inserts, insert_mesh=insert_mesh), log=None)   # via .partial
+                             camera=camera, insert_frames=inserts, insert_mesh=insert_mesh),
+                 log=log and (lambda msg: log(f"{kind}: {msg}")))   # via .partial; the frames' progress
+    elif insert_mesh:   # the folder is named after the mesh file's name alone
+        made = json.loads((folder / "scene.json").read_text()).get("config", {}).get("insert_mesh")
+        if made and Path(made).is_absolute() and Path(made) != Path(insert_mesh).resolve():
+            raise FileExistsError(f"{folder}: cached with another mesh of that name ({made}), not {insert_mesh}; "
+                                  "remove it or give another --synth-dir")
     return folder

@@ -291,6 +291,11 @@ def sweep_command(args) -> int:
         set_cpu_threads(args.threads)
     settings = grid(_ints(args.strides, "strides"), _ints(args.rays, "rays"), _ints(args.bands, "bands"),
                     _floats(args.voxel_sizes, "voxel-sizes"))
+    for st in settings:   # every combination checked before scenes are rendered and frames run
+        try:
+            _session(st, args.device or "auto")
+        except ValueError as e:
+            raise ValueError(f"--strides / --rays / --bands / --voxel-sizes: the setting {st.label}: {e}") from None
 
     def log(msg: str) -> None:
         print(f"sweep: {msg}", file=sys.stderr, flush=True)
@@ -301,7 +306,7 @@ def sweep_command(args) -> int:
         width, height = parse_size(args.size)
         recordings = [cached_scene(Path(args.synth_dir or SCENE_CACHE), k.strip(), width, height, args.frames,
                                    args.spp, log=log) for k in args.scenes.split(",") if k.strip()]
-    log(f"{len(settings)} settings x {len(recordings)} recordings x {args.frames} frames")
+    log(f"{len(settings)} settings x {len(recordings)} recordings x up to {args.frames} frames each")
     rows = run_sweep(recordings, settings, device=args.device or "auto", frames=args.frames, warmup=args.warmup,
                      progress=log)
     merged = merge_csv(Path(args.csv), rows)

@@ -22,7 +22,7 @@ import numpy as np
 from trimesh.exchange.obj import export_obj
 
 from ..config import ALBEDO_TEXTURE
-from ..io.atomic import atomic_path, write_json, write_text
+from ..io.atomic import atomic_path, check_output_dir, write_json, write_text
 from ..io.images import linear_to_srgb, write_exr, write_png_rgb
 from ..io.native import NativeWriter, frame_name
 from .cameras import CAMERA_PATHS, camera_path, default_intrinsics
@@ -216,8 +216,13 @@ def generate(cfg: SynthConfig, log: Callable[[str], None] | None = print) -> Pat
     written into OUT.partial and renamed (or its files moved into an empty OUT) when whole, so an interrupted run
     leaves no folder that passes for a recording (a later run starts OUT.partial again)."""
     cfg.validate()
+    # the input files' absolute paths in scene.json: rerender_inserts and the command line read them from elsewhere
+    cfg = replace(cfg, **{key: str(Path(value).resolve()) for key, value in
+                          (("mesh", cfg.mesh), ("insert_mesh", cfg.insert_mesh), ("env", cfg.env))
+                          if value and not (key == "env" and value == "procedural")})
     final = Path(cfg.out)
-    if final.exists() and (not final.is_dir() or any(final.iterdir())):
+    check_output_dir(final, "--out")
+    if final.exists() and any(final.iterdir()):
         raise ValueError(f"--out {final}: exists and is not an empty folder; remove it or choose another")
     say = log or (lambda _msg: None)
     resolved = final.resolve()   # "." and a link to a folder have a name
