@@ -119,6 +119,74 @@ def test_local_batch_failure_resume_and_changed_session(three_sessions, tmp_path
     assert summary["sessions"][1]["frames"] == FRAMES
 
 
+def test_frames_a_run_skipped_leave_its_session_incomplete(tmp_path, recording, capsys):
+    """A session whose run skipped an unreadable frame is done but not complete: the result and report say which
+    frames, no completion marker is written, and --resume runs it again once the file is mended (before: reported ok
+    with no word of it, marked complete, and --resume never ran it again)."""
+    rec = tmp_path / "rec"
+    shutil.copytree(recording, rec)
+    png = rec / "rgb" / "000001.png"
+    good = png.read_bytes()
+    png.write_bytes(b"not a png")
+    path = write_session(tmp_path, "gap", rec)
+    report = tmp_path / "report"
+    assert main(["batch", str(path), "--out", str(report)]) == 0
+    r = json.loads((report / "batch_summary.json").read_text())["sessions"][0]
+    assert r["status"] == "ok" and r["frames"] == FRAMES - 1 and r["frames_skipped"] == [1]
+    assert r["error"].startswith("1 frame(s) skipped, the first: frame 1: ")
+    assert "1 frame(s) skipped" in (report / "batch_report.md").read_text()
+    assert not (tmp_path / "out" / "gap" / ".complete").exists()
+    png.write_bytes(good)
+    assert main(["batch", str(path), "--resume", "--out", str(report)]) == 0
+    r = json.loads((report / "batch_summary.json").read_text())["sessions"][0]
+    assert r["status"] == "ok" and r["frames"] == FRAMES and r["frames_skipped"] == [] and r["error"] is None
+    assert (tmp_path / "out" / "gap" / ".complete").is_file()
+
+
+def test_ctrl_c_stops_the_batch_and_reports_what_finished(tmp_path):
+    """Ctrl-C in a terminal (SIGINT to the batch's process group) while its workers run: the workers are stopped, the
+    report lists every session as interrupted, and the batch exits 130 at once (before: it hung joining workers
+    interrupted mid-queue, or printed their tracebacks, and wrote no report)."""
+    import os
+    import signal
+    import subprocess
+
+    demo = Path(__file__).resolve().parents[1] / "data" / "demo"
+    paths = []
+    for name in ("one", "two"):
+        text = (demo / "session.toml").read_text().replace('path = "."', f'path = "{demo}"')
+        text = text.replace('mesh = "object.obj"', f'mesh = "{demo / "object.obj"}"')
+        paths.append(tmp_path / f"{name}.toml")
+        paths[-1].write_text(text.replace('dir = "out"', f'dir = "{tmp_path / name}"'))
+    report = tmp_path / "report"
+    proc = subprocess.Popen([sys.executable, "-m", "photoreg", "batch", *map(str, paths), "--workers", "2",
+                             "--device", "cpu", "--out", str(report)], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, start_new_session=True,
+                            cwd=Path(__file__).resolve().parents[1])
+    try:
+        for line in proc.stderr:   # the workers are at work
+            if ": frame " in line:
+                break
+        os.killpg(proc.pid, signal.SIGINT)
+        out, err = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+    assert proc.returncode == 130 and "Traceback" not in err, err
+    assert "batch: interrupted: 0 ok, 2 failed, 0 skipped" in out
+    summary = json.loads((report / "batch_summary.json").read_text())
+    assert [r["error"] for r in summary["sessions"]] == ["KeyboardInterrupt: interrupted (Ctrl-C) before it finished"] * 2
+    assert not any((tmp_path / name / ".complete").exists() for name in ("one", "two"))
+    deadline = time.monotonic() + 20   # no worker left behind (stopped ones are reaped within a few seconds)
+    while True:
+        try:
+            os.killpg(proc.pid, 0)
+        except ProcessLookupError:
+            break
+        assert time.monotonic() < deadline, "a process of the batch's group outlived it"
+        time.sleep(0.2)
+
+
 def test_invalid_sessions_reported_before_any_work(tmp_path, recording, capsys):
     good = write_session(tmp_path, "good", recording)
     unknown = write_session(tmp_path, "unknown", recording, colour='"red"')

@@ -15,11 +15,12 @@ from __future__ import annotations
 import multiprocessing as mp
 import os
 import queue
+import signal
 import sys
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 
 from ..device import exit_with_parent
-from .runner import BatchProgress, SessionTask, failed_result, run_one
+from .runner import BatchInterrupted, BatchProgress, SessionTask, failed_result, run_one
 
 _progress_queue = None  # set in each worker process by _init_worker
 
@@ -30,9 +31,11 @@ HOST_MEMORY_PER_WORKER = 2 * 1024 ** 3  # bytes of host memory per worker (a CPU
 def _init_worker(q, cpu_threads: int) -> None:
     """Worker start-up: the progress queue, and its share of the cores for split CPU kernel launches
     (photoreg.kernels.launch) unless PHOTOREG_CPU_THREADS is set: N workers each using every core would
-    oversubscribe them N-fold."""
+    oversubscribe them N-fold. Ctrl-C is the batch's to handle (run_local stops the workers): a terminal's reaches
+    every process of its group, and workers it interrupted mid-queue left the pool's join waiting for ever."""
     global _progress_queue
     _progress_queue = q
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     os.environ.setdefault("PHOTOREG_CPU_THREADS", str(cpu_threads))
     exit_with_parent()   # a batch killed with SIGKILL leaves no worker waiting for ever
 
@@ -124,8 +127,10 @@ def run_local(tasks: list[SessionTask], progress: BatchProgress, workers: int | 
     ctx = mp.get_context("spawn")
     q = ctx.Queue()
     results: dict[int, dict] = {}
-    with ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_init_worker,
-                             initargs=(q, cpu_share(workers))) as pool:
+    pool = ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_init_worker,
+                               initargs=(q, cpu_share(workers)))
+    pending, stopped = {}, False
+    try:
         pending = {pool.submit(_run, t): t for t in tasks}
         while pending:
             finished, _ = wait(pending, timeout=0.25, return_when=FIRST_COMPLETED)
@@ -138,4 +143,19 @@ def run_local(tasks: list[SessionTask], progress: BatchProgress, workers: int | 
                     r = failed_result(t, e)
                 results[t.index] = r
                 progress.finished(r)
+    except KeyboardInterrupt:
+        # the queued sessions cancelled, the running ones' workers stopped (their outputs are written whole or not
+        # at all, without the completion marker: --resume runs them again); Python 3.14's terminate_workers()
+        # does this, earlier versions have no public way
+        stopped = True
+        workers = list((getattr(pool, "_processes", None) or {}).values())   # shutdown() forgets them
+        pool.shutdown(wait=False, cancel_futures=True)
+        for process in workers:
+            process.terminate()
+        for t in pending.values():
+            results[t.index] = failed_result(t, KeyboardInterrupt("interrupted (Ctrl-C) before it finished"))
+        raise BatchInterrupted([results[t.index] for t in tasks]) from None
+    finally:
+        if not stopped:
+            pool.shutdown(wait=True)
     return [results[t.index] for t in tasks]

@@ -93,8 +93,17 @@ def failed_result(task: SessionTask, error: BaseException, wall_s: float | None 
     tb = "".join(traceback.format_exception(error)).rstrip().splitlines()
     return {"session": task.path, "name": task.name, "out": task.session.output.dir, "status": "failed",
             "error": f"{type(error).__name__}: {error}", "traceback": "\n".join(tb[-TRACEBACK_LINES:]),
-            "device": task.session.device, "frames": 0, "wall_s": wall_s, "frames_per_s": None, "accuracy": None,
-            "attempts": 1}
+            "device": task.session.device, "frames": 0, "frames_skipped": [], "wall_s": wall_s,
+            "frames_per_s": None, "accuracy": None, "attempts": 1}
+
+
+class BatchInterrupted(KeyboardInterrupt):
+    """Ctrl-C during a batch's runs: the executor stopped its workers; `results` (in task order) hold the sessions
+    that finished and, failed as interrupted, those that did not."""
+
+    def __init__(self, results: list[dict]):
+        super().__init__()
+        self.results = results
 
 
 def accuracy_summary(scores: dict) -> dict:
@@ -119,17 +128,23 @@ def run_one(task: SessionTask, progress=None) -> dict:
         (out / COMPLETE_MARKER).unlink(missing_ok=True)
         on_frame = None if progress is None else (lambda done, total: progress.put((task.index, done, total)))
         summary = run_session(task.session, quiet=True, on_frame=on_frame)
-        accuracy, unscored = None, None
+        accuracy, notes = None, []
+        skipped = summary["frames_skipped"]
+        if skipped:   # frames that could not be read: the run is done, but not complete (--resume runs it again)
+            notes.append(f"{len(skipped)} frame(s) skipped, the first: frame {skipped[0]['frame']}: "
+                         f"{skipped[0]['error']}")
         if (Path(task.session.recording.path) / "lighting_gt.json").is_file():
             try:   # ground truth that does not score leaves the run done, its outputs whole
                 accuracy = accuracy_summary(score(out, task.session.recording.path))
             except (ValueError, OSError) as e:
-                unscored = f"not scored: {e}"
-        result = {"session": task.path, "name": task.name, "out": str(out), "status": "ok", "error": unscored,
-                  "traceback": None, "device": summary["device"], "frames": summary["frames_processed"],
+                notes.append(f"not scored: {e}")
+        result = {"session": task.path, "name": task.name, "out": str(out), "status": "ok",
+                  "error": "; ".join(notes) or None, "traceback": None, "device": summary["device"],
+                  "frames": summary["frames_processed"], "frames_skipped": [sk["frame"] for sk in skipped],
                   "wall_s": round(time.perf_counter() - t0, 3), "frames_per_s": summary["frames_per_s"],
                   "accuracy": accuracy, "attempts": 1}
-        write_json(out / COMPLETE_MARKER, {"session_sha256": task.digest, "result": result})
+        if not skipped:
+            write_json(out / COMPLETE_MARKER, {"session_sha256": task.digest, "result": result})
         return result
     except Exception as e:  # noqa: BLE001 - a failing session is reported, the batch goes on
         return failed_result(task, e, round(time.perf_counter() - t0, 3))
@@ -264,17 +279,21 @@ def batch_command(args) -> int:
         else:
             results[t.index] = {**previous, "status": "skipped"}
             progress.finished(results[t.index])
+    interrupted = False
     if todo:
         if args.executor == "ray":
             from .ray_executor import run_ray
             done = run_ray(todo, progress, args.workers, args.ray_address)
         else:
             from .local import run_local
-            done = run_local(todo, progress, args.workers)
+            try:
+                done = run_local(todo, progress, args.workers)
+            except BatchInterrupted as e:   # Ctrl-C: the finished sessions still get their report
+                done, interrupted = e.results, True
         results.update((t.index, r) for t, r in zip(todo, done))
     ordered = [results[t.index] for t in tasks]
     summary = write_reports(args.out, ordered, args.executor, time.perf_counter() - t0)
     c = summary["counts"]
-    print(f"batch: {c['ok']} ok, {c['failed']} failed, {c['skipped']} skipped; report in "
-          f"{Path(args.out) / 'batch_report.md'}")
-    return 1 if c["failed"] else 0
+    print(f"batch: {'interrupted: ' if interrupted else ''}{c['ok']} ok, {c['failed']} failed, {c['skipped']} "
+          f"skipped; report in {Path(args.out) / 'batch_report.md'}")
+    return 130 if interrupted else 1 if c["failed"] else 0
