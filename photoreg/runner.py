@@ -25,11 +25,13 @@ from .types import FrameResult
 WRITER_THREADS = 4
 DEMO_SESSION = Path(__file__).resolve().parents[1] / "data" / "demo" / "session.toml"
 # OUT/.complete: written by `photoreg batch` once a session's outputs are whole, removed by every run that starts
+# writing its frames
 COMPLETE_MARKER = ".complete"
-# a run's per-frame files, folder -> extensions: the NNNNNN.ext an earlier run left and a finished run did not write
-# are removed, so that a folder never mixes two runs (photoreg score would take them for this run's)
+# a run's per-frame files, folder -> extensions, and its other files: an earlier run's are removed as a run writes its
+# first frame, so that a folder never mixes two runs (clear_earlier)
 PICTURE_DIRS = {"envmap": (".exr", ".png"), "sphere": (".png",)}
 COMPOSITE_DIRS = {"composite": (".png",), "composite_linear": (".exr",), "lightmap": (".exr",)}
+RUN_FILES = ("lighting.jsonl", "summary.json", "composite.mp4", "composite.partial.mp4", "trajectory.txt")
 
 
 @dataclass(frozen=True)
@@ -149,20 +151,20 @@ def write_composite(out: Path, r: FrameResult, lightmap: np.ndarray) -> None:
     write_exr(out / "lightmap" / f"{name}.exr", lightmap)
 
 
-def remove_earlier(out: Path, kept: dict[str, tuple[tuple[str, ...], set[str]]],
-                   files: tuple[str, ...]) -> list[Path]:
-    """Remove what an earlier run left in `out` and this finished run did not write: in each per-frame folder of
-    `kept` (folder -> (its files' extensions, the names this run wrote)) the NNNNNN.ext files not written, and the
-    named `files` (composite.mp4, trajectory.txt where this run wrote none). Other files are never touched."""
-    removed = []
-    for folder, (exts, names) in kept.items():
-        d = out / folder
-        if d.is_dir():
-            removed += [p for p in d.iterdir() if p.suffix in exts and len(p.stem) == 6 and p.stem.isdigit()
-                        and p.name not in names]
+def clear_earlier(out: Path, dirs: dict[str, tuple[str, ...]], files: tuple[str, ...]) -> list[Path]:
+    """Remove an earlier run's outputs from `out` as this run writes its first frame's: the NNNNNN.ext files of the
+    per-frame folders `dirs` (folder -> extensions) and the named `files` that are there, and a batch's completion
+    marker; other files are never touched. From then on the folder holds this run's files alone, an interrupted run's
+    too (its frames written over an earlier run's had left the two mixed, which photoreg score took for one run); a
+    run that processes no frame replaces nothing. Returns the outputs removed (the marker aside)."""
+    removed = [p for folder, exts in dirs.items() if (out / folder).is_dir() for p in (out / folder).iterdir()
+               if p.suffix in exts and len(p.stem) == 6 and p.stem.isdigit()]
     removed += [out / name for name in files if (out / name).is_file()]
     for p in removed:
         p.unlink(missing_ok=True)
+    (out / COMPLETE_MARKER).unlink(missing_ok=True)
+    if removed:
+        print(f"photoreg: removed {len(removed)} file(s) an earlier run left in {out}", file=sys.stderr)
     return removed
 
 
@@ -188,9 +190,8 @@ def run_session(s: Session, quiet: bool = False, on_frame: Callable[[int, int], 
         s.recording.use_poses = False
     out = Path(s.output.dir)
     check_output_dir(out, "--out / [output] dir")
+    pipe = Pipeline(s, rec.intrinsics)   # bad objects fail here, before the output folder is touched
     out.mkdir(parents=True, exist_ok=True)
-    (out / COMPLETE_MARKER).unlink(missing_ok=True)   # whatever this run leaves, it is not a batch's finished outputs
-    pipe = Pipeline(s, rec.intrinsics)
     skipped: list[dict] = []
     results: list[FrameDone] = []
     stage_ms = StageTimes()
@@ -208,6 +209,9 @@ def run_session(s: Session, quiet: bool = False, on_frame: Callable[[int, int], 
         try:
             for frame in reader:
                 r = pipe.process(frame)
+                if not results:   # the folder becomes this run's (its own partial video is being written)
+                    clear_earlier(out, {**PICTURE_DIRS, **COMPOSITE_DIRS}, tuple(
+                        n for n in RUN_FILES if video is None or n != video.tmp.name))
                 results.append(FrameDone(r.index, r.timestamp, r.diagnostics.weak, r.composite is not None,
                                          r.pose if pipe.tracker is not None else None))
                 stage_ms.add(r.timings_ms)
@@ -264,16 +268,6 @@ def run_session(s: Session, quiet: bool = False, on_frame: Callable[[int, int], 
             summary["tracking"].update(ate_against({r.index: r.pose for r in results if r.pose is not None},
                                                    rec.poses))
     write_json(out / "summary.json", summary)
-    k = s.output.pictures_every
-    pictures = {f"{r.index:06d}" for n, r in enumerate(results) if k and n % k == 0}
-    composites = {f"{r.index:06d}" for r in results if r.composited}
-    kept = {d: (exts, {stem + e for stem in stems for e in exts})
-            for dirs, stems in ((PICTURE_DIRS, pictures), (COMPOSITE_DIRS, composites)) for d, exts in dirs.items()}
-    stale = [name for name, written in (("composite.mp4", video is not None), ("trajectory.txt", "tracking" in summary))
-             if not written]
-    removed = remove_earlier(out, kept, tuple(stale))
-    if removed:
-        print(f"photoreg: removed {len(removed)} file(s) an earlier run left in {out}", file=sys.stderr)
     return summary
 
 

@@ -210,8 +210,19 @@ def test_a_frame_without_a_pose_is_counted_as_no_composite(tmp_path, capsys):
 def test_a_run_leaves_only_its_own_outputs(tmp_path, capsys):
     """A run into a folder holding an earlier run's outputs: once it finishes, the earlier run's per-frame files it
     did not write again (pictures, composites, lightmaps), its video and its tracked trajectory are gone (photoreg
-    score would take them for this run's), and with them a batch's completion marker; other files stay."""
+    score would take them for this run's), and with them a batch's completion marker; other files stay. They go as
+    the run writes its first frame: one interrupted later leaves its own frames and lighting.jsonl.partial alone
+    (before: written over the earlier run's, beside its lighting.jsonl and summary.json, two runs mixed); one whose
+    object cannot load does not touch the folder."""
     from photoreg.cli import main
+    from photoreg.runner import run_session
+
+    bad = tmp_path.parent / f"{tmp_path.name}_bad.toml"   # a mesh that does not load: nothing starts
+    text = (REPO / "data" / "demo" / "session.toml").read_text()
+    bad.write_text(text.replace('path = "."', f'path = "{REPO}/data/demo"').replace('mesh = "object.obj"',
+                                                                                   f'mesh = "{bad}"'))
+    assert main(["run", str(bad), "--out", str(tmp_path / "never"), "--device", "cpu", "--quiet"]) == 2
+    assert not (tmp_path / "never").exists()
 
     args = ["run", str(REPO / "data" / "demo" / "session.toml"), "--out", str(tmp_path), "--rays", "16", "--stride",
             "8", "--bands", "2", "--device", "cpu", "--quiet"]
@@ -227,7 +238,20 @@ def test_a_run_leaves_only_its_own_outputs(tmp_path, capsys):
     assert files == {"lighting.jsonl", "summary.json", "composite/notes.txt", "envmap/000000.exr", "envmap/000000.png",
                      "sphere/000000.png", *(f"{d}/00000{i}.{e}" for i in (0, 1) for d, e in
                                             (("composite", "png"), ("composite_linear", "exr"), ("lightmap", "exr")))}
-    assert f"removed {len(earlier) - 2} file(s) an earlier run left in {tmp_path}" in capsys.readouterr().err
+    assert f"removed {len(earlier)} file(s) an earlier run left in {tmp_path}" in capsys.readouterr().err
+
+    session = load_session(REPO / "data" / "demo" / "session.toml")
+    session.output.dir, session.device, session.frames = str(tmp_path), "cpu", "0:3"
+    session.lighting.rays, session.lighting.stride, session.lighting.bands = 16, 8, 2
+
+    def interrupt(done: int, total: int) -> None:   # Ctrl-C after the first frame
+        raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        run_session(session, quiet=True, on_frame=interrupt)
+    files = {p.relative_to(tmp_path).as_posix() for p in tmp_path.rglob("*") if p.is_file()}
+    assert files == {"lighting.jsonl.partial", "composite/notes.txt", "envmap/000000.exr", "envmap/000000.png",
+                     "sphere/000000.png", "composite/000000.png", "composite_linear/000000.exr", "lightmap/000000.exr"}
 
 
 def test_a_run_holds_no_composite_past_its_writers(tmp_path, monkeypatch):

@@ -26,7 +26,7 @@ from websockets.sync.client import connect as ws_connect
 
 from ..io.ahead import Ahead
 from ..io.atomic import atomic_path, check_output_dir, write_json
-from ..runner import Progress, StageTimes, remove_earlier, writer_threads
+from ..runner import Progress, StageTimes, clear_earlier, writer_threads
 from ..types import Frame, Intrinsics
 from .protocol import (CLIENT_RECONSTRUCTION_KEYS, ProtocolError, decode, decode_composite, encode, encode_frame,
                        hello_message, record_from_lighting, token_option)
@@ -332,22 +332,26 @@ def stream_command(args) -> int:
 
     tracked: dict[int, tuple[float, np.ndarray]] = {}   # frame -> (timestamp, pose) the server tracked (`track`)
 
+    cleared = False   # a frame answered: the folder is this stream's (clear_earlier)
+
     def on_record(record: dict) -> None:
+        nonlocal cleared
         if partial is not None:
+            if not cleared:
+                clear_earlier(out, {"composite": (".png", ".jpg")},
+                              ("lighting.jsonl", "summary.json", "trajectory.txt"))
+                cleared = True
             partial.write(json.dumps(record) + "\n")
             partial.flush()
         if options.get("track") and record.get("pose") is not None:
             tracked[record["frame"]] = (record["timestamp"], np.asarray(record["pose"], dtype=np.float64))
         progress.step(f"frame {record['frame']}" + (" (weak)" if record["diagnostics"].get("weak") else ""))
 
-    written: set[str] = set()   # composite/ files of this stream
-
     def on_composite(index: int, encoding: str, image: bytes) -> None:
         if out is not None:
             name = f"{index:06d}.{'png' if encoding == 'png' else 'jpg'}"
             with atomic_path(out / "composite" / name) as tmp:
                 tmp.write_bytes(image)
-            written.add(name)
 
     main_thread = threading.current_thread() is threading.main_thread()
     if main_thread:   # SIGTERM stops like Ctrl-C: what has arrived is saved
@@ -377,8 +381,6 @@ def stream_command(args) -> int:
         write_json(out / "summary.json", summary)
         if options.get("track"):
             write_tum_trajectory(out / "trajectory.txt", [tracked[i] for i in sorted(tracked)])
-        remove_earlier(out, {"composite": ((".png", ".jpg"), written)}, () if options.get("track") else
-                       ("trajectory.txt",))
     for sk in skipped:
         print(f"photoreg: skipped frame {sk['frame']}: {sk['error']}", file=sys.stderr)
     for e in summary["errors"]:
