@@ -15,6 +15,7 @@ from photoreg.lighting.sh import unoccluded_transfer
 from photoreg.recon.fusion import RESTART_AFTER, FusionConfig, TSDFVolume, VolumeLimitError
 from photoreg.synth.analytic import PrimitiveScene, box_room
 from photoreg.synth.cameras import default_intrinsics, look_at
+from photoreg.types import Intrinsics
 
 wp = init_warp()
 
@@ -186,6 +187,13 @@ def test_empty_volume_gives_an_empty_grid():
     assert np.all(grid.sdf.numpy() == SDF_NUMPY(grid.trunc))
     maps = raycast_surface(grid, K160, look_at([0.0, 0.0, 0.0], [1.0, 0.0, 0.0]), 0.1, 4.0)
     assert not maps.valid.any()
+    # a pixel of depth in a tiny frame, where Open3D's touch pass finds no block and raised ("No block is touched";
+    # a client's 2 x 2 camera had the server send that C++ message): nothing fused, nothing raised
+    tiny = Intrinsics(8, 6, 8.0, 8.0, 3.5, 2.5, 1000.0)
+    depth = np.zeros((6, 8), np.float32)
+    depth[3, 4] = 1.0
+    vol.integrate(depth, tiny, np.eye(4))
+    assert vol.frames_integrated == 0
 
 
 @pytest.mark.parametrize("device", ["cpu", pytest.param("cuda", marks=pytest.mark.skipif(

@@ -3,6 +3,7 @@ pipelines on a small analytic recording (tests/scenes.py, 80x60, few rays): repl
 concurrent and misbehaving clients, malformed messages (hypothesis), limits, shutdown, a load figure."""
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import gc
 import json
@@ -34,6 +35,7 @@ from photoreg.io.poses import read_tum_trajectory
 from photoreg.io.recording import open_recording
 from photoreg.pipeline import Pipeline
 from photoreg.recon.tracking import ate_rmse
+from photoreg.service import client as client_module
 from photoreg.service.client import Client, ServiceClosed, connect, encoded_ahead, replay, session_options
 from photoreg.service.protocol import (CLIENT_TYPES, ERROR_CODES, Limits, ProtocolError, composite_message, decode,
                                        decode_composite, decode_frame, encode, encode_composite, encode_frame,
@@ -708,8 +710,6 @@ def test_a_stalled_server_ends_the_stream_in_one_line(monkeypatch, caplog):
 
     from websockets.asyncio.server import serve
 
-    from photoreg.service import client as client_module
-
     async def stalls(ws):
         await ws.recv()
         await ws.send(json.dumps({"type": "ready"}))
@@ -1042,6 +1042,18 @@ def test_limits_clients_token_idle(recording):
             with pytest.raises(ConnectionClosed) as closed:
                 extra.recv(10)
             assert closed.value.rcvd.code == 1013
+
+        def late(*args, **kwargs):   # a client whose hello goes out after the server has refused and closed
+            ws = ws_connect(*args, **kwargs)
+            entered = ws.__enter__()
+            wait_for(lambda: entered.close_code is not None, 10)
+            return contextlib.nullcontext(entered)
+
+        with pytest.MonkeyPatch.context() as mp:   # the refusal's error, not a raw ConnectionClosed from the send
+            mp.setattr(client_module, "ws_connect", late)
+            with pytest.raises((ProtocolError, ServiceClosed)) as refused:
+                connect(url, K, OPTIONS, token="s3cret")
+        assert "too_many_clients" in str(refused.value)
         time.sleep(1.5)   # idle
         assert c.recv(10)["code"] == "idle_timeout"
         with pytest.raises(ServiceClosed) as closed:

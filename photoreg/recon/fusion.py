@@ -134,7 +134,12 @@ class TSDFVolume:
             return  # nothing to fuse (Open3D would raise)
         depth_img = o3d.t.geometry.Image(self._tensor(depth))
         depth_max, trunc_voxels = float(cfg.depth_max), float(cfg.trunc_voxels)
-        blocks = self.vbg.compute_unique_block_coordinates(depth_img, K, extrinsic, 1.0, depth_max, trunc_voxels)
+        try:
+            blocks = self.vbg.compute_unique_block_coordinates(depth_img, K, extrinsic, 1.0, depth_max, trunc_voxels)
+        except RuntimeError as e:   # Open3D raises where its touch pass finds no block (a pixel of depth in an 8x6
+            if "No block is touched" in str(e):   # frame; a 640x480 frame's single pixel touches one): nothing to fuse
+                return
+            raise
         if blocks.shape[0] == 0:
             return
         own = tuple(b.cpu().numpy().astype(np.int64) for b in (blocks.min(dim=[0]), blocks.max(dim=[0])))

@@ -139,7 +139,10 @@ def connect(url: str, intrinsics: Intrinsics, options: dict | None = None, token
         raise RuntimeError(f"{url}: cannot connect to a photoreg server ({e})") from None
     client = Client(ws, {})
     try:
-        ws.send(encode(hello_message(intrinsics, options, token, composite)))
+        try:
+            ws.send(encode(hello_message(intrinsics, options, token, composite)))
+        except ConnectionClosed:   # refused at once (too_many_clients, shutting_down): its error and close came first
+            pass                   # and are what recv gives (before: a raw ConnectionClosed traceback)
         reply = client.recv(timeout)
     except Exception:
         client.close()

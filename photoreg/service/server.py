@@ -31,7 +31,7 @@ from websockets.asyncio.server import ServerConnection, serve
 from websockets.exceptions import ConnectionClosed
 from websockets.frames import CloseCode
 
-from ..device import resolve_device
+from ..device import open3d_message, resolve_device
 from ..types import Frame, Intrinsics
 from .host import CompositePatch, PipelineHost
 from .protocol import (CLIENT_TYPES, Limits, ProtocolError, bye_message, composite_message, decode, decode_frame,
@@ -259,7 +259,8 @@ class Connection:
             log.exception("%s: could not start a pipeline", self.peer)
             host, self.host = self.host, None
             await asyncio.to_thread(host.close)
-            text = str(e) if self.cfg.meshes is None else str(e).replace(f"{Path(self.cfg.meshes)}/", "")
+            text = open3d_message(e)
+            text = text if self.cfg.meshes is None else text.replace(f"{Path(self.cfg.meshes)}/", "")
             raise ProtocolError("pipeline", f"could not start the pipeline: {text}") from None   # no server paths
         try:   # the session is live once the client has its ready
             await self._send(ready_message(hello, self.server.device, self.cfg.queue, self.cfg.limits))
@@ -356,8 +357,8 @@ class Connection:
                     return
                 except Exception as e:
                     log.warning("%s: frame %d failed: %s", self.peer, index, e)
-                    self.counts["errors"] += 1
-                    await self._send(error_message("pipeline", f"frame {index}: {e}", index))
+                    self.counts["errors"] += 1   # Open3D's words without its colour codes and C++ location
+                    await self._send(error_message("pipeline", f"frame {index}: {open3d_message(e)}", index))
                     continue
                 finally:
                     self.running.popleft()
