@@ -250,23 +250,26 @@ def _fill(cls, data: dict, where: str, section: str):
     return cls(**kwargs)
 
 
-def _check_object(obj: ObjectConfig, where: str) -> None:
+def _check_object(obj: ObjectConfig, where: str, name: str = "objects") -> None:
+    """Range checks of one object; `name` says which in the messages ("objects[2]")."""
     import numpy as np
 
     for key, n in (("position", 3), ("rotation", 3), ("albedo", 3)):
         v = getattr(obj, key)
         if key == "albedo" and isinstance(v, str):
             if v != ALBEDO_TEXTURE:
-                raise ValueError(f"{where}: objects.albedo must be 3 finite numbers or {ALBEDO_TEXTURE!r}, got {v!r}")
+                raise ValueError(f"{where}: {name}.albedo must be 3 finite numbers or {ALBEDO_TEXTURE!r}, got {v!r}")
             continue
-        if len(v) != n or not all(isinstance(x, (int, float)) and np.isfinite(x) for x in v):
-            raise ValueError(f"{where}: objects.{key} must be {n} finite numbers, got {v!r}")
+        # a boolean is not a number here (true read as 1.0 before)
+        if len(v) != n or not all(isinstance(x, (int, float)) and not isinstance(x, bool) and np.isfinite(x)
+                                  for x in v):
+            raise ValueError(f"{where}: {name}.{key} must be {n} finite numbers, got {v!r}")
         if key == "albedo" and not all(0 <= x <= 1 for x in v):
-            raise ValueError(f"{where}: objects.albedo must be reflectances in 0..1 (linear RGB), got {v!r}")
+            raise ValueError(f"{where}: {name}.albedo must be reflectances in 0..1 (linear RGB), got {v!r}")
     if not (np.isfinite(obj.scale) and obj.scale > 0):
-        raise ValueError(f"{where}: objects.scale must be a positive finite number, got {obj.scale!r}")
+        raise ValueError(f"{where}: {name}.scale must be a positive finite number, got {obj.scale!r}")
     if not obj.mesh:
-        raise ValueError(f"{where}: objects.mesh is required")
+        raise ValueError(f"{where}: {name}.mesh is required")
 
 
 def load_session(path: str | Path, files: bool = True) -> Session:
@@ -291,7 +294,7 @@ def load_session(path: str | Path, files: bool = True) -> Session:
         elif key == "objects":
             if not isinstance(value, list):
                 raise ValueError(f"{where}: 'objects' must be an array of tables ([[objects]])")
-            s.objects = [_fill(ObjectConfig, v, where, "objects") for v in value]
+            s.objects = [_fill(ObjectConfig, v, where, f"objects[{i}]") for i, v in enumerate(value)]
         elif key in ("device", "frames"):
             setattr(s, key, getattr(_fill(Session, {key: value}, where, ""), key))
         else:
@@ -299,8 +302,8 @@ def load_session(path: str | Path, files: bool = True) -> Session:
                              f"(known: {', '.join(sorted([*sections, 'objects', 'device', 'frames']))})")
     if not s.recording.path:
         raise ValueError(f"{where}: key 'recording.path' is required")
-    for obj in s.objects:
-        _check_object(obj, where)
+    for i, obj in enumerate(s.objects):
+        _check_object(obj, where, f"objects[{i}]")
     if files:
         s.recording.path = str(resolve_path(s.recording.path, base, f"{where}: recording.path"))
         if not Path(s.recording.path).exists():

@@ -141,7 +141,8 @@ class Pipeline:
         if self.tracker is not None:
             return self.tracker.track(frame, prep)
         if frame.pose is None:
-            return None, [f"frame {frame.index}: no pose in the recording (use --no-poses to track)"]
+            return None, [f"frame {frame.index}: no pose given (to track the camera instead: photoreg run --no-poses, "
+                          "a session's recording.use_poses = false, a stream's hello options.track = true)"]
         return frame.pose, []
 
     def _samples(self, prep: Prepared, maps, pose: np.ndarray,

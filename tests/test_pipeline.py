@@ -66,8 +66,9 @@ def test_session_overrides_and_bad_options(tmp_path):
     albedo = re.search(r"^albedo = .*$", demo, re.M).group(0)          # the object's: a colour, "texture" or an error
     bad.write_text(demo.replace(albedo, 'albedo = "texture"'))
     assert load_session(bad).objects[0].albedo == "texture"
-    for value, message in (('"wood"', r"objects\.albedo must be 3 finite numbers or 'texture'"),
-                           ("3", r"objects\.albedo' must be list or str")):
+    for value, message in (('"wood"', r"objects\[0\]\.albedo must be 3 finite numbers or 'texture'"),
+                           ("3", r"objects\[0\]\.albedo' must be list or str"),
+                           ("[true, 0.5, 0.5]", r"objects\[0\]\.albedo must be 3 finite numbers")):   # not 1.0
         bad.write_text(demo.replace(albedo, f"albedo = {value}"))
         with pytest.raises(ValueError, match=message):
             load_session(bad)

@@ -190,6 +190,16 @@ def test_objects_name_meshes_in_the_server_s_folder(tmp_path):
     with pytest.raises(ProtocolError, match="albedo") as e:
         parse_hello(hello_message(K, {"objects": [{**obj, "albedo": "wood"}]}), "cpu", Limits(), tmp_path / "meshes")
     assert e.value.code == "bad_field"
+    # which object is wrong, named; a boolean is not a number; more objects than the server takes is its limit
+    for bad, says in (({"scale": -1.0}, "objects[1].scale must be a positive finite number"),
+                      ({"position": [True, 0, 0]}, "objects[1].position must be 3 finite numbers"),
+                      ({"colour": "red"}, "unknown key 'objects[1].colour'")):
+        with pytest.raises(ProtocolError, match=re.escape(says)) as e:
+            parse_hello(hello_message(K, {"objects": [obj, {**obj, **bad}]}), "cpu", Limits(), tmp_path / "meshes")
+        assert e.value.code == "bad_field"
+    with pytest.raises(ProtocolError, match=r"3 objects, this server takes at most 2") as e:
+        parse_hello(hello_message(K, {"objects": [obj] * 3}), "cpu", Limits(max_objects=2), tmp_path / "meshes")
+    assert e.value.code == "too_large"
     with pytest.raises(ProtocolError, match="no mesh folder"):
         hello("bunny.obj", meshes=None)
     with pytest.raises(ProtocolError, match="hello.composite"):

@@ -364,12 +364,14 @@ def session_from_options(value, device: str, limits: Limits, meshes: Path | None
             s.render = _fill(RenderConfig, opts["render"], "hello.options", "render")
         if "objects" in opts:
             objs = opts["objects"]
-            if not isinstance(objs, list) or len(objs) > limits.max_objects:
-                raise ProtocolError("bad_field", f"hello.options.objects must be a list of at most "
-                                                 f"{limits.max_objects} objects")
-            s.objects = [_fill(ObjectConfig, o, "hello.options", "objects") for o in objs]
+            if not isinstance(objs, list):
+                raise ProtocolError("bad_field", f"hello.options.objects must be a list, got {type(objs).__name__}")
+            if len(objs) > limits.max_objects:   # a server limit, as the others below
+                raise ProtocolError("too_large", f"hello.options.objects: {len(objs)} objects, this server takes at "
+                                                 f"most {limits.max_objects}")
+            s.objects = [_fill(ObjectConfig, o, "hello.options", f"objects[{i}]") for i, o in enumerate(objs)]
             for i, o in enumerate(s.objects):
-                _check_object(o, "hello.options")
+                _check_object(o, "hello.options", f"objects[{i}]")
                 o.mesh = resolve_mesh(o.mesh, meshes, f"hello.options.objects[{i}].mesh")
         if "track" in opts:
             if not isinstance(opts["track"], bool):
