@@ -175,7 +175,8 @@ def test_ctrl_c_stops_the_batch_and_reports_what_finished(tmp_path):
     assert proc.returncode == 130 and "Traceback" not in err, err
     assert "batch: interrupted: 0 ok, 2 failed, 0 skipped" in out
     summary = json.loads((report / "batch_summary.json").read_text())
-    assert [r["error"] for r in summary["sessions"]] == ["KeyboardInterrupt: interrupted (Ctrl-C) before it finished"] * 2
+    assert [r["error"] for r in summary["sessions"]] == [
+        "KeyboardInterrupt: interrupted (Ctrl-C) before it finished"] * 2
     assert not any((tmp_path / name / ".complete").exists() for name in ("one", "two"))
     deadline = time.monotonic() + 20   # no worker left behind (stopped ones are reaped within a few seconds)
     while True:

@@ -204,8 +204,9 @@ class Tracker:
         self.stats.unconfirmed += 1
         if len(self.stats.unconfirmed_frames) < MAX_LISTED:
             self.stats.unconfirmed_frames.append(frame.index)
-        return self.pose, [f"frame {frame.index}: tracking unconfirmed: the alignment moved far from its guess or fits "
-                           f"worse than the recent frames, and no matched features confirmed it (fitness {fitness:.2f})"]
+        return self.pose, [f"frame {frame.index}: tracking unconfirmed: the alignment moved far from its guess or "
+                           "fits worse than the recent frames, and no matched features confirmed it (fitness "
+                           f"{fitness:.2f})"]
 
     def _doubtful(self, T: np.ndarray, start: np.ndarray, fitness: float) -> bool:
         """Whether an alignment needs the matched features' word: it corrected its guess by more than DOUBT_M or
