@@ -188,6 +188,8 @@ def run_session(s: Session, quiet: bool = False, on_frame: Callable[[int, int], 
     if s.recording.use_poses and not rec.has_poses:
         print(f"photoreg: {s.recording.path} has no poses: tracking the camera instead", file=sys.stderr)
         s.recording.use_poses = False
+    for warning in rec.warnings:
+        print(f"photoreg: {s.recording.path}: {warning}", file=sys.stderr)
     out = Path(s.output.dir)
     check_output_dir(out, "--out / [output] dir")
     pipe = Pipeline(s, rec.intrinsics)   # bad objects fail here, before the output folder is touched
@@ -243,7 +245,8 @@ def run_session(s: Session, quiet: bool = False, on_frame: Callable[[int, int], 
     for sk in skipped:
         print(f"photoreg: skipped frame {sk['frame']}: {sk['error']}", file=sys.stderr)
     summary = {
-        "recording": s.recording.path, "device": pipe.device, "frames_processed": len(results),
+        "recording": s.recording.path, "recording_warnings": rec.warnings, "device": pipe.device,
+        "frames_processed": len(results),
         "frames_skipped": skipped, "wall_s": round(wall, 3),
         "frames_per_s": round(len(results) / wall, 3) if wall > 0 else None,
         # of wall_s: waiting for frames to be read, and for a free slot of the file writers (0: neither set the pace)

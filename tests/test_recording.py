@@ -254,14 +254,22 @@ def test_native_round_trip(tmp_path):
         assert frame.source == str(tmp_path / f"rgb/{i:06d}.png")
 
 
-def test_native_association_without_match(tmp_path):
-    write_native(tmp_path, n=4)
-    lines = (tmp_path / "depth.txt").read_text().splitlines()
-    (tmp_path / "depth.txt").write_text("\n".join(lines[:3] + lines[4:]) + "\n")  # frame 1 loses its depth
-    rec = open_recording(tmp_path)
+def test_native_association_without_match(tmp_path, capsys):
+    """A colour frame without depth within 0.02 s is left out of the frame order, and a run says so before its frames
+    and in summary.json (before: only `photoreg info` did; the later frames' indices shifted without a word)."""
+    rec_dir = tmp_path / "rec"
+    write_native(rec_dir, n=4)
+    lines = (rec_dir / "depth.txt").read_text().splitlines()
+    (rec_dir / "depth.txt").write_text("\n".join(lines[:3] + lines[4:]) + "\n")  # frame 1 loses its depth
+    rec = open_recording(rec_dir)
     assert [p.name for p in rec.color_files] == ["000000.png", "000002.png", "000003.png"]
     assert [p.name for p in rec.depth_files] == ["000000.png", "000002.png", "000003.png"]
-    assert any("1 of 4 colour frames" in note for note in rec.notes)
+    assert rec.warnings == ["1 of 4 colour frames in rgb.txt have no depth within 0.02 s and are left out (the first: "
+                            "rgb/000001.png); frame indices count the frames kept"]
+    out = tmp_path / "out"
+    assert main(["run", str(rec_dir), "--out", str(out), "--rays", "8", "--bands", "1", "--stride", "4", "--quiet"]) == 0
+    assert f"photoreg: {rec_dir}: {rec.warnings[0]}" in capsys.readouterr().err
+    assert json.loads((out / "summary.json").read_text())["recording_warnings"] == rec.warnings
 
 
 def test_7scenes(tmp_path):

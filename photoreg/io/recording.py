@@ -40,7 +40,10 @@ class Recording:
     distortion: np.ndarray | None = None  # k1 k2 p1 p2 k3 of the colour camera, when known
     undistort: bool = False               # remove `distortion` from every frame read
     invalid_depth: int | None = None      # raw depth value meaning "no measurement" besides 0 (7-Scenes: 65535)
-    notes: list[str] = field(default_factory=list)  # where calibration/poses came from, dropped frames
+    notes: list[str] = field(default_factory=list)  # where calibration/poses came from, how frames were paired
+    # what a run says before its first frame: colour frames the recording's frame order leaves out (TUM: no depth
+    # within 0.02 s), which the frame indices then skip
+    warnings: list[str] = field(default_factory=list)
     shutter: float | None = None          # seconds the shutter is open for each frame, when the calibration says
 
     def __post_init__(self) -> None:
@@ -275,4 +278,6 @@ def info_command(args: argparse.Namespace) -> int:
                   + ", ".join(f"frame {i} {p}" for i, p in missing[:3]) + (", ..." if len(missing) > 3 else ""))
     for note in rec.notes:
         print(f"note:        {note}")
+    for warning in rec.warnings:
+        print(f"warning:     {warning}")
     return 0

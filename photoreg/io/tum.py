@@ -86,7 +86,7 @@ def open_tum(path: Path, native: bool, undistort: bool) -> Recording:
     if calib is None:
         raise ValueError(f"{path}: no intrinsics.json or intrinsics.txt, and the folder name names no freiburg "
                          "sensor (freiburg1/2/3): write intrinsics.json {width, height, fx, fy, cx, cy, depth_scale}")
-    notes = [f"intrinsics from {calib.source}"]
+    notes, warnings = [f"intrinsics from {calib.source}"], []
 
     if (path / "associations.txt").is_file():
         times, rows = read_timestamped(path / "associations.txt", 4)
@@ -98,8 +98,11 @@ def open_tum(path: Path, native: bool, undistort: bool) -> Recording:
         depth_times, depth_rows = read_timestamped(path / "depth.txt", 2)
         pairs = associate(rgb_times, depth_times)
         if len(pairs) < len(rgb_rows):
-            notes.append(f"{len(rgb_rows) - len(pairs)} of {len(rgb_rows)} colour frames in rgb.txt have no depth "
-                         f"within {MAX_DIFFERENCE} s and are left out")
+            kept = {i for i, _ in pairs}
+            first = next(i for i in range(len(rgb_rows)) if i not in kept)
+            warnings.append(f"{len(rgb_rows) - len(pairs)} of {len(rgb_rows)} colour frames in rgb.txt have no depth "
+                            f"within {MAX_DIFFERENCE} s and are left out (the first: {rgb_rows[first][1]}); frame "
+                            "indices count the frames kept")
         times = rgb_times[[i for i, _ in pairs]]
         colors = [path / rgb_rows[i][1] for i, _ in pairs]
         depths = [path / depth_rows[j][1] for _, j in pairs]
@@ -111,4 +114,5 @@ def open_tum(path: Path, native: bool, undistort: bool) -> Recording:
         notes.append("poses from groundtruth.txt, interpolated to the colour frame times")
     return Recording(path=path, format="native" if native else "tum", intrinsics=calib.intrinsics,
                      timestamps=times, color_files=colors, depth_files=depths, poses=poses,
-                     distortion=calib.distortion, undistort=undistort, notes=notes, shutter=calib.shutter)
+                     distortion=calib.distortion, undistort=undistort, notes=notes, warnings=warnings,
+                     shutter=calib.shutter)
