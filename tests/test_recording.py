@@ -272,6 +272,32 @@ def test_native_association_without_match(tmp_path, capsys):
     assert json.loads((out / "summary.json").read_text())["recording_warnings"] == rec.warnings
 
 
+def test_text_files_with_a_bom_read_and_other_encodings_named(tmp_path):
+    """Files saved by a Windows editor (a UTF-8 byte-order mark) read as without it: a comment on line 1 stays a
+    comment (before: rgb.txt:1 'expected 2 fields', intrinsics.txt "unknown key '\\ufeff#'", TOML 'Invalid
+    statement'); bytes that are not UTF-8 give an error naming the file (before: the codec's message alone)."""
+    from photoreg.config import load_session
+
+    write_native(tmp_path / "rec", n=3)
+    for name in ("rgb.txt", "depth.txt", "groundtruth.txt"):
+        path = tmp_path / "rec" / name
+        path.write_bytes(b"\xef\xbb\xbf# saved by Notepad\n" + path.read_bytes())
+    (tmp_path / "rec" / "intrinsics.json").write_bytes(b"\xef\xbb\xbf" + (tmp_path / "rec" / "intrinsics.json")
+                                                        .read_bytes())
+    rec = open_recording(tmp_path / "rec")
+    assert len(rec) == 3 and rec.has_poses
+    session = tmp_path / "s.toml"
+    session.write_bytes(b'\xef\xbb\xbf[recording]\npath = "rec"\n')
+    assert load_session(session).recording.path == str(tmp_path / "rec")
+    session.write_bytes('[recording]\npath = "rec"  # caf\xe9\n'.encode("latin-1"))
+    with pytest.raises(ValueError, match=re.escape(f"{session}: not UTF-8 text")):
+        load_session(session)
+    gt = tmp_path / "rec" / "groundtruth.txt"
+    gt.write_bytes(gt.read_bytes() + b"\xff")
+    with pytest.raises(ValueError, match=re.escape(f"{gt}: not UTF-8 text")):
+        open_recording(tmp_path / "rec")
+
+
 def test_7scenes(tmp_path):
     write_7scenes(tmp_path, n=3)
     (tmp_path / "README.txt").write_text("not a frame")

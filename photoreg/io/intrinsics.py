@@ -10,6 +10,7 @@ import numpy as np
 
 from ..types import Intrinsics
 from .recording import data_lines, parse_floats
+from .text import read_text
 
 VGA = (640, 480)  # image size of every supported sensor (Kinect v1 class) when a file does not give one
 TXT_KEYS = {"fx": 1, "fy": 1, "cx": 1, "cy": 1, "depth_scale": 1, "width": 1, "height": 1, "dist": 5, "shutter": 1}
@@ -51,7 +52,7 @@ def read_intrinsics_json(path: Path, depth_scale: float) -> tuple[Intrinsics, fl
     """(intrinsics, shutter) of intrinsics.json {width, height, fx, fy, cx, cy, depth_scale, shutter}; depth_scale
     defaults to `depth_scale`, shutter (seconds) to None."""
     try:
-        data = json.loads(path.read_text())
+        data = json.loads(read_text(path))
     except json.JSONDecodeError as e:
         raise ValueError(f"{path}:{e.lineno}: not valid JSON ({e.msg})") from None
     if not isinstance(data, dict):

@@ -7,6 +7,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
 from .atomic import write_text
+from .text import read_text
 
 
 def pose_from_tum(values) -> np.ndarray:
@@ -41,22 +42,21 @@ def write_tum_trajectory(path, stamped) -> None:
 def read_tum_trajectory(path) -> tuple[np.ndarray, np.ndarray]:
     """groundtruth.txt -> (timestamps (N,), poses (N,4,4)); errors name the file and line."""
     ts, poses = [], []
-    with open(path) as f:
-        for lineno, line in enumerate(f, 1):
-            line = line.strip()
-            if not line or line.startswith("#"):
-                continue
-            parts = line.split()
-            try:
-                if len(parts) != 8:
-                    raise ValueError(f"expected 8 values, found {len(parts)}")
-                vals = [float(x) for x in parts]
-                poses.append(pose_from_tum(vals[1:]))
-            except ValueError as e:
-                raise ValueError(f"{path}:{lineno}: {e}") from None
-            if ts and vals[0] <= ts[-1]:
-                raise ValueError(f"{path}:{lineno}: timestamps not increasing ({vals[0]} after {ts[-1]})")
-            ts.append(vals[0])
+    for lineno, line in enumerate(read_text(path).splitlines(), 1):
+        line = line.strip()
+        if not line or line.startswith("#"):
+            continue
+        parts = line.split()
+        try:
+            if len(parts) != 8:
+                raise ValueError(f"expected 8 values, found {len(parts)}")
+            vals = [float(x) for x in parts]
+            poses.append(pose_from_tum(vals[1:]))
+        except ValueError as e:
+            raise ValueError(f"{path}:{lineno}: {e}") from None
+        if ts and vals[0] <= ts[-1]:
+            raise ValueError(f"{path}:{lineno}: timestamps not increasing ({vals[0]} after {ts[-1]})")
+        ts.append(vals[0])
     if not ts:
         raise ValueError(f"{path}: no poses")
     return np.asarray(ts), np.stack(poses)

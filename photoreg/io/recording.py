@@ -19,6 +19,7 @@ from ..types import Frame, Intrinsics
 from .ahead import Ahead
 from .images import read_depth_raw, read_rgb, registered_depth
 from .poses import check_pose
+from .text import read_text
 
 FORMATS = ("native", "tum", "redwood", "7scenes")
 
@@ -109,10 +110,7 @@ def data_lines(path: Path) -> list[tuple[int, list[str]]]:
     """(line number, whitespace-separated fields) of each non-blank, non-'#' line of a text file."""
     if not path.is_file():
         raise FileNotFoundError(f"{path}: no such file")
-    try:
-        text = path.read_text()
-    except UnicodeDecodeError as e:
-        raise ValueError(f"{path}: not a text file ({e.reason})") from None
+    text = read_text(path)
     rows = []
     for lineno, line in enumerate(text.splitlines(), 1):
         s = line.strip()
