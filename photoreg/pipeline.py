@@ -500,8 +500,10 @@ class Pipeline:
                 notes = [*notes, *(f"render: {n}" for n in self.render.last.notes)]   # why it drew no shadow, say
         if F is None:  # no pose: keep the previous estimate, its light and the frame it came from (or darkness), weak
             prev = self.prev_F if self.prev_F is not None else np.zeros((3, self.solver_cfg.fit_bands ** 2))
-            F, diag = Lighting(prev.copy()), SolveDiagnostics(notes=["no pose: previous estimate repeated"],
-                                                              estimated_frame=self.prev_from[0], sun=self.prev_from[1])
+            note = ("no pose: previous estimate repeated" if self.prev_F is not None else
+                    "no pose and no earlier estimate: zero lighting")
+            F, diag = Lighting(prev.copy()), SolveDiagnostics(notes=[note], estimated_frame=self.prev_from[0],
+                                                              sun=self.prev_from[1])
         diag.notes = notes + list(diag.notes)
         if prep.saturated_fraction > 0.2:
             diag.notes.append(f"{prep.saturated_fraction:.0%} of pixels saturated")

@@ -110,9 +110,8 @@ class SolveDiagnostics:
                "condition_number": float(cond) if np.isfinite(cond) else None,
                "effective_rank": int(self.effective_rank),
                "residual_rms": float(self.residual_rms), "weak": bool(self.weak),
-               "notes": list(self.notes)}
-        if self.estimated_frame is not None:
-            out["estimated_frame"] = int(self.estimated_frame)
+               "notes": list(self.notes),
+               "estimated_frame": None if self.estimated_frame is None else int(self.estimated_frame)}
         if self.bands:
             out.update({"bands": int(self.bands), "regularization": self.regularization,
                         "albedo": [[round(float(x), 5) for x in row] for row in self.albedo],

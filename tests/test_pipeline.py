@@ -368,11 +368,17 @@ def test_a_black_frame_keeps_the_held_light(history):
 def test_a_frame_without_a_pose_repeats_the_previous_estimate_and_its_light():
     """Frame 2 without a pose repeats frame 1's lighting, says it is frame 1's and keeps its traced light (before: no
     estimated_frame and no light, which photoreg score counted as 90 degrees off)."""
-    results = _demo_lighting(3, lambda i, f: dataclasses.replace(f, pose=None) if i == 2 else f)
+    results = _demo_lighting(3, lambda i, f: dataclasses.replace(f, pose=None) if i in (0, 2) else f)
     held, before = results[2].diagnostics, results[1].diagnostics
     assert held.weak and "no pose: previous estimate repeated" in held.notes
     assert held.estimated_frame == 1 and held.sun == before.sun is not None
     assert np.array_equal(results[2].lighting.sh, results[1].lighting.sh)
+    # before any estimate there is none to repeat: zero lighting, said so, and lighting.jsonl's estimated_frame null
+    # (before: "previous estimate repeated", and the key missing)
+    first = results[0].diagnostics
+    assert first.weak and first.notes[-1] == "no pose and no earlier estimate: zero lighting"
+    assert first.notes[0].startswith("frame 0: no pose given (to track the camera instead: photoreg run --no-poses")
+    assert not results[0].lighting.sh.any() and first.to_json()["estimated_frame"] is None
 
 
 def test_asynchronous_lighting_is_the_in_line_estimate_one_frame_later(tmp_path):

@@ -38,7 +38,7 @@ def test_tracking_without_poses_on_tum(data_dir, tmp_path):
                  "--rays", "8", "--bands", "3", "--stride", "8", "--out", str(out), "--quiet"]) == 0
     tracking = json.loads((out / "summary.json").read_text())["tracking"]
     assert tracking["failures"] == [] and tracking["unconfirmed"] == len(tracking["unconfirmed_frames"]) <= 2
-    assert tracking["ate_rmse_m"] < 0.03
+    assert tracking["ate_rmse_m"] < 0.03 and tracking["ate_frames"] == 15
 
 
 def test_ate_is_zero_for_a_rigidly_moved_copy_and_measures_noise():

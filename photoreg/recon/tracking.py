@@ -313,10 +313,11 @@ def _agree(a: np.ndarray, b: np.ndarray, metres: float = AGREE_M, degrees: float
 
 def ate_against(tracked: dict, recorded) -> dict:
     """summary.json's score of tracked poses (frame index -> 4x4) against a recording's (index -> 4x4 or None):
-    {"ate_rmse_m"}, or {"ate_rmse_m": None, "ate_note": why} where too few frames have both."""
+    {"ate_rmse_m", "ate_frames" (the frames with both)}, or {"ate_rmse_m": None, "ate_note": why} where too few
+    frames have both."""
     gt = {i: recorded[i] for i in tracked if recorded[i] is not None}
     try:
-        return {"ate_rmse_m": round(ate_rmse(tracked, gt)[0], 5)}
+        return {"ate_rmse_m": round(ate_rmse(tracked, gt)[0], 5), "ate_frames": len(gt)}
     except ValueError as e:
         return {"ate_rmse_m": None, "ate_note": str(e)}
 
