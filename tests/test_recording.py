@@ -207,6 +207,21 @@ def test_info_warns_of_depth_in_other_units(tmp_path, capsys):
     assert "median 1.500" in out and "warning" not in out
 
 
+def test_intrinsics_json_gives_the_distortion(tmp_path):
+    """intrinsics.json's "dist" undistorts a native recording (before: refused as an unknown key, and the
+    intrinsics.txt beside it, which could hold them, was ignored without a word)."""
+    write_native(tmp_path)
+    js = tmp_path / "intrinsics.json"
+    (tmp_path / "intrinsics.txt").write_text("fx 1\nfy 1\ncx 1\ncy 1\n")
+    with pytest.raises(ValueError, match="no distortion coefficients"):
+        open_recording(tmp_path, undistort=True)
+    assert "intrinsics from intrinsics.json (intrinsics.txt beside it ignored)" in open_recording(tmp_path).notes
+    js.write_text(json.dumps({**json.loads(js.read_text()), "dist": [0.2, -0.5, 0.001, 0.002, 0.3]}))
+    rec = open_recording(tmp_path, undistort=True)
+    np.testing.assert_array_equal(rec.distortion, [0.2, -0.5, 0.001, 0.002, 0.3])
+    assert not np.array_equal(rec.frame(0).color, open_recording(tmp_path).frame(0).color)
+
+
 def test_info_command_error(tmp_path, capsys):
     assert main(["info", str(tmp_path)]) == 2
     assert "not a recognised recording" in capsys.readouterr().err
@@ -363,6 +378,7 @@ def _frame_error(root: Path, i: int = 1) -> Exception:
     "missing depth.txt", "unsorted rgb.txt", "malformed rgb.txt", "bad timestamp", "non-finite pose",
     "non-unit quaternion", "broken intrinsics.json", "intrinsics.json missing key", "intrinsics.txt unknown key",
     "intrinsics.json bad shutter", "intrinsics.txt bad shutter", "intrinsics.json unknown key",
+    "intrinsics.json bad dist",
 ])
 def test_index_errors_name_file_and_line(tmp_path, case):
     write_native(tmp_path)
@@ -396,6 +412,9 @@ def test_index_errors_name_file_and_line(tmp_path, case):
     elif case == "intrinsics.json bad shutter":
         js.write_text(json.dumps({**json.loads(js.read_text()), "shutter": 16}))
         where = f"{js}: shutter must be seconds in 0..1, found 16"
+    elif case == "intrinsics.json bad dist":
+        js.write_text(json.dumps({**json.loads(js.read_text()), "dist": [0.1, 0.0, True, 0.0, 0.0]}))
+        where = f"{js}: dist must be 5 finite numbers (k1 k2 p1 p2 k3)"
     elif case == "intrinsics.json unknown key":   # a misspelt depth_scale would take the default
         js.write_text(json.dumps({**json.loads(js.read_text()), "depthscale": 1000}))
         where = f"{js}: unknown key(s) 'depthscale'"

@@ -45,12 +45,13 @@ def checked_intrinsics(values: dict, where: str) -> Intrinsics:
                       float(values["cx"]), float(values["cy"]), float(values["depth_scale"]))
 
 
-JSON_KEYS = ("width", "height", "fx", "fy", "cx", "cy", "depth_scale", "shutter")
+JSON_KEYS = ("width", "height", "fx", "fy", "cx", "cy", "depth_scale", "shutter", "dist")
 
 
-def read_intrinsics_json(path: Path, depth_scale: float) -> tuple[Intrinsics, float | None]:
-    """(intrinsics, shutter) of intrinsics.json {width, height, fx, fy, cx, cy, depth_scale, shutter}; depth_scale
-    defaults to `depth_scale`, shutter (seconds) to None."""
+def read_intrinsics_json(path: Path, depth_scale: float) -> tuple[Intrinsics, np.ndarray | None, float | None]:
+    """(intrinsics, distortion, shutter) of intrinsics.json {width, height, fx, fy, cx, cy, depth_scale, shutter,
+    dist}; depth_scale defaults to `depth_scale`, shutter (seconds) and dist ([k1, k2, p1, p2, k3], OpenCV's) to
+    None."""
     try:
         data = json.loads(read_text(path))
     except json.JSONDecodeError as e:
@@ -68,7 +69,14 @@ def read_intrinsics_json(path: Path, depth_scale: float) -> tuple[Intrinsics, fl
         if isinstance(values[key], bool) or not isinstance(values[key], (int, float)):
             raise ValueError(f"{path}: {key} must be a number, found {values[key]!r}")
     shutter = None if data.get("shutter") is None else checked_shutter(data["shutter"], str(path))
-    return checked_intrinsics(values, str(path)), shutter
+    distortion = None
+    if data.get("dist") is not None:
+        dist = data["dist"]
+        if (not isinstance(dist, list) or len(dist) != TXT_KEYS["dist"]
+                or not all(isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x) for x in dist)):
+            raise ValueError(f"{path}: dist must be {TXT_KEYS['dist']} finite numbers (k1 k2 p1 p2 k3), found {dist!r}")
+        distortion = np.array(dist, dtype=np.float64)
+    return checked_intrinsics(values, str(path)), distortion, shutter
 
 
 def read_intrinsics_txt(path: Path, depth_scale: float) -> tuple[Intrinsics, np.ndarray | None, float | None]:
@@ -100,8 +108,9 @@ def read_calibration(folder: Path, depth_scale: float) -> Calibration | None:
     """The folder's intrinsics.json, else its intrinsics.txt, else None (the format's defaults apply)."""
     if (folder / "intrinsics.json").is_file():
         path = folder / "intrinsics.json"
-        intrinsics, shutter = read_intrinsics_json(path, depth_scale)
-        return Calibration(intrinsics, None, path.name, shutter)
+        intrinsics, distortion, shutter = read_intrinsics_json(path, depth_scale)
+        ignored = " (intrinsics.txt beside it ignored)" if (folder / "intrinsics.txt").is_file() else ""
+        return Calibration(intrinsics, distortion, path.name + ignored, shutter)
     if (folder / "intrinsics.txt").is_file():
         path = folder / "intrinsics.txt"
         intrinsics, distortion, shutter = read_intrinsics_txt(path, depth_scale)

@@ -53,7 +53,8 @@ class Recording:
             raise ValueError(f"{self.path}: inconsistent frame lists")  # a reader bug, not bad input
         if self.undistort and self.distortion is None:
             raise ValueError(f"{self.path}: no distortion coefficients known for this {self.format} recording; "
-                             "open it without undistort or give them ('dist k1 k2 p1 p2 k3' in intrinsics.txt)")
+                             "open it without undistort or give them ('dist k1 k2 p1 p2 k3' in intrinsics.txt, "
+                             '"dist": [k1, k2, p1, p2, k3] in intrinsics.json)')
 
     def __len__(self) -> int:
         return len(self.color_files)
