@@ -231,7 +231,8 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--force", action="store_true", help="train even when weights are cached")
 
     p = sub.add_parser("batch", help="run many session files, each into its own output folder (local workers or Ray)")
-    p.add_argument("sessions", nargs="+", help="session files (sessions/*.toml); all are validated before any runs")
+    p.add_argument("sessions", nargs="+", help="session files (sessions/*.toml); their keys, values, recordings "
+                                               "and mesh files are checked before any runs")
     p.add_argument("--workers", type=int,
                    help="sessions run at once (default: per GPU one for every host core of its share, at most one "
                         "per 2 GB of its memory; without GPUs one per CPU core; at most one per 2 GB of free host memory; "

@@ -57,12 +57,13 @@ def resolve_device(device: str = "auto") -> str:
     """'auto' | 'cpu' | 'cuda' -> Warp device string ('cpu' or 'cuda:0'); clear error if CUDA is absent."""
     wp = init_warp()
     if device not in ("auto", "cpu", "cuda") and not device.startswith("cuda:"):
-        raise ValueError(f"--device must be auto, cpu or cuda, got {device!r}")
+        raise ValueError(f"device (--device, a session's device) must be auto, cpu or cuda, got {device!r}")
     if device == "auto":
         return "cuda:0" if wp.is_cuda_available() else "cpu"
     if device.startswith("cuda"):
         if not wp.is_cuda_available():
-            raise RuntimeError("--device cuda asked for, but Warp finds no CUDA device/driver on this machine")
+            raise RuntimeError("device cuda asked for (--device, a session's device), but Warp finds no CUDA "
+                               "device/driver on this machine")
         return "cuda:0" if device == "cuda" else device
     return "cpu"
 

@@ -14,6 +14,7 @@ import pytest
 import photoreg.pipeline as pipeline_module
 from photoreg.cli import main
 from photoreg.config import LightingConfig, Session, load_session, validate
+from photoreg.device import init_warp
 from photoreg.io.images import linear_to_srgb, srgb_to_linear
 from photoreg.lighting.sh import LUMINANCE
 from photoreg.io.recording import iter_frames, open_recording
@@ -51,7 +52,7 @@ def test_demo_run_writes_every_output(tmp_path):
     assert (out / "sphere" / "000000.png").is_file()
 
 
-def test_session_overrides_and_bad_options(tmp_path):
+def test_session_overrides_and_bad_options(tmp_path, capsys):
     s = load_session(REPO / "data" / "demo" / "session.toml")
     assert Path(s.recording.path) == (REPO / "data" / "demo").resolve()
     assert main(["run", str(REPO / "data" / "demo"), "--bands", "0", "--out", str(tmp_path)]) == 2
@@ -76,6 +77,11 @@ def test_session_overrides_and_bad_options(tmp_path):
     with pytest.raises(ValueError, match=re.escape(f"{bad}: recording.path '${{PHOTOREG_NO_SUCH_VARIABLE}}/demo': "
                                                    "environment variable PHOTOREG_NO_SUCH_VARIABLE is not set")):
         load_session(bad)
+    if not init_warp().is_cuda_available():   # a session's device names the session, not the CLI flag alone
+        bad.write_text('device = "cuda"\n' + demo)
+        assert main(["run", str(bad), "--out", str(tmp_path / "o")]) == 2
+        assert "device cuda asked for (--device, a session's device), but Warp finds no CUDA" in \
+            capsys.readouterr().err
     upper = tmp_path / "demo.TOML"   # a session file whatever the suffix's case
     upper.write_text(demo)
     assert main(["run", str(upper), "--frames", "0:1", "--rays", "8", "--bands", "1", "--out", str(tmp_path / "o"),
