@@ -328,8 +328,8 @@ class Pipeline:
         sun, sol, own = self._lighting(grid, current, data, previous, t)
         self.last_solution = sol
         # nothing to fit a light on (a black frame without a history of samples): the solve returned the previous
-        # lighting, and the previous frame's traced light stays with it (dropped, the frame's shadows were F's lobe
-        # and the filtered irradiance started again at the next frame)
+        # lighting, and the previous frame's traced light stays with it (it was dropped: the frame's shadows fell back
+        # to F's lobe, and the filtered irradiance started again at the next frame)
         keep_light = sun is None and sol.diagnostics.n_samples == 0 and self.prev_from[1] is not None
         with self._timed(t, "solve"):
             F, diag = sol.lighting, sol.diagnostics

@@ -162,7 +162,10 @@ def test_ctrl_c_stops_the_batch_and_reports_what_finished(tmp_path):
     proc = subprocess.Popen([sys.executable, "-m", "photoreg", "batch", *map(str, paths), "--workers", "2",
                              "--device", "cpu", "--out", str(report)], stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True, start_new_session=True,
-                            cwd=Path(__file__).resolve().parents[1])
+                            cwd=Path(__file__).resolve().parents[1],
+                            # as a terminal's: a test run started in the background (`pytest &`) ignores SIGINT, and
+                            # its children would too, Python then installing no KeyboardInterrupt
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     try:
         for line in proc.stderr:   # the workers are at work
             if ": frame " in line:

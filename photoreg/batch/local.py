@@ -148,9 +148,9 @@ def run_local(tasks: list[SessionTask], progress: BatchProgress, workers: int | 
         # at all, without the completion marker: --resume runs them again); Python 3.14's terminate_workers()
         # does this, earlier versions have no public way
         stopped = True
-        workers = list((getattr(pool, "_processes", None) or {}).values())   # shutdown() forgets them
+        processes = list((getattr(pool, "_processes", None) or {}).values())   # shutdown() forgets them
         pool.shutdown(wait=False, cancel_futures=True)
-        for process in workers:
+        for process in processes:
             process.terminate()
         for t in pending.values():
             results[t.index] = failed_result(t, KeyboardInterrupt("interrupted (Ctrl-C) before it finished"))
