@@ -141,7 +141,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--async", dest="asynchronous", action="store_true",
                    help="ask the server to estimate the lighting beside the frames (lighting.asynchronous)")
     p.add_argument("--session", help="ask for what `photoreg run SESSION` does: the session file's [lighting], "
-                                     "[render] and [[objects]] (meshes named by file name in the server's --meshes)")
+                                     "[render], the client-settable [reconstruction] keys, [[objects]] (meshes "
+                                     "named by file name in the server's --meshes) and recording.use_poses = "
+                                     "false as track (its frames and device are not sent)")
     p.add_argument("--render-stride", type=int, help="ask the server to sample the objects' shadows every n-th "
                                                      "pixel (render.stride, default 4)")
     p.add_argument("--composite", choices=["jpeg", "png"], help="encoding of the composites the server sends for "
