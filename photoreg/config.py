@@ -343,11 +343,18 @@ def validate(s: Session) -> None:
         parse_frames(s.frames, 0)
     except ValueError as e:
         raise ValueError(f"{where}: {e}") from None
-    for section in ("reconstruction", "lighting", "render"):
-        for f in dataclasses.fields(getattr(s, section)):
-            v = getattr(getattr(s, section), f.name)
+    for section in ("recording", "reconstruction", "lighting", "render", "output"):   # a Session built in code
+        cfg = getattr(s, section)                                                     # is checked as a file's is
+        hints = typing.get_type_hints(type(cfg))
+        for f in dataclasses.fields(cfg):
+            v = _check_value(where, f"{section}.{f.name}", getattr(cfg, f.name), hints[f.name])
+            choices = _CHOICES.get((section, f.name))
+            if choices and v not in choices:
+                raise ValueError(f"{where}: key '{section}.{f.name}' must be one of {sorted(choices)}, got {v!r}")
             if isinstance(v, float) and not math.isfinite(v):
                 raise ValueError(f"{where}: {section}.{f.name} must be a finite number, got {v}")
+    for i, obj in enumerate(s.objects):
+        _check_object(obj, where, f"objects[{i}]")
     fitted = L.bands if L.select == "fixed" else L.max_bands   # the most bands a solve may fit
     checks = [(1 <= L.bands <= 8, "lighting.bands must be in 1..8"),
               (L.rays >= 1, "lighting.rays must be >= 1"),

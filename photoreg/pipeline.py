@@ -17,6 +17,7 @@ process, so the frames do not wait for the solve's interpreter lock.
 """
 from __future__ import annotations
 
+import copy
 import dataclasses
 import multiprocessing
 import sys
@@ -26,8 +27,9 @@ from contextlib import contextmanager
 
 import numpy as np
 
-from .config import Session
+from .config import Session, validate
 from .device import exit_with_parent, init_warp, keep_frame_memory, resolve_device
+from .io.intrinsics import checked_intrinsics, checked_shutter
 from .kernels.raycast import raycast_surface
 from .kernels.samples import AGREES, CANDIDATE, CLIPPED, sample_maps
 from .kernels.transfer import make_direction_set, radiance_transfer, visibility
@@ -69,9 +71,15 @@ class Pipeline:
     estimate."""
 
     def __init__(self, session: Session, intrinsics: Intrinsics, volume: TSDFVolume | None = None):
-        """`volume`: a fusion volume to share (its owner fuses; see observe/estimate), else a new one."""
+        """`volume`: a fusion volume to share (its owner fuses; see observe/estimate), else a new one. The session is
+        checked as a session file's is (config.validate) and copied: changing it afterwards changes nothing here
+        (before, some settings took effect and others did not, one of them crashing)."""
+        session = copy.deepcopy(session)
+        validate(session)
+        intrinsics = checked_intrinsics(intrinsics.to_json(), "the pipeline's intrinsics")
         self.session = session
         self.intrinsics = intrinsics
+        self._closed = False
         self.device = resolve_device(session.device)
         self._wp = init_warp()
         keep_frame_memory()
@@ -401,7 +409,8 @@ class Pipeline:
 
     def close(self) -> None:
         """Wait for the estimate in flight (lighting.asynchronous) and stop the worker and its solve process;
-        idempotent."""
+        idempotent. A closed pipeline processes no frame."""
+        self._closed = True
         if self._worker is not None:
             self._worker.shutdown(wait=True)
             self._in_flight = None
@@ -434,7 +443,15 @@ class Pipeline:
 
     def observe(self, frame: Frame, t: dict[str, float]) -> tuple[Prepared, np.ndarray | None, list[str]]:
         """Preprocess, pose and fuse one frame (the stages that no lighting setting changes); ms into t."""
+        if self._closed:
+            raise RuntimeError("this Pipeline was closed: make a new one to process more frames")
         lc, rc = self.session.lighting, self.session.reconstruction
+        k, own = frame.intrinsics, self.intrinsics   # the pipeline's are the ones every stage uses
+        if not np.allclose([k.width, k.height, k.fx, k.fy, k.cx, k.cy],
+                           [own.width, own.height, own.fx, own.fy, own.cx, own.cy], rtol=1e-6, atol=1e-9):
+            raise ValueError(f"frame {frame.index} ({frame.source}): its intrinsics {k} are not the pipeline's {own}")
+        if frame.shutter is not None:
+            checked_shutter(frame.shutter, f"frame {frame.index}")
         with self._timed(t, "preprocess"):
             prep = prepare(frame, lc, rc)
         with self._timed(t, "pose"):
@@ -513,7 +530,10 @@ class Pipeline:
             diag.notes.append(f"{1 - prep.valid_depth_fraction:.0%} of pixels without depth (0, NaN or outside "
                               "reconstruction.depth_min..depth_max)")
         if not diag.weak:
-            self.prev_F, self.prev_from = F.sh, (diag.estimated_frame, diag.sun)
+            self.prev_F, self.prev_from = F.sh.copy(), (diag.estimated_frame, copy.deepcopy(diag.sun))
         t["total"] = (time.perf_counter() - t_all) * 1000.0
-        return FrameResult(frame.index, frame.timestamp, F, diag, sh.dominant_direction(F.sh), t, composite=composite,
-                           composite_region=region, pose=pose)
+        # the caller's own arrays: editing the result in place changed later frames' lighting (the held estimate, the
+        # next solve's reference were the array handed back)
+        return FrameResult(frame.index, frame.timestamp, Lighting(F.sh.copy()), diag, sh.dominant_direction(F.sh), t,
+                           composite=composite, composite_region=region,
+                           pose=None if pose is None else np.array(pose, dtype=np.float64))

@@ -92,6 +92,12 @@ def masked_depth(depth: np.ndarray, lo: float,
 def prepare(frame: Frame, light: LightingConfig, recon: ReconstructionConfig) -> Prepared:
     """Mask saturated/black pixels and invalid depth (NaN, inf, out of range); optionally filter the depth
     (reconstruction.depth_filter_px). The linear colour is made when first read (Prepared.linear)."""
+    if frame.depth.ndim != 2 or not np.issubdtype(frame.depth.dtype, np.floating):
+        raise ValueError(f"frame {frame.index} ({frame.source}): depth is {frame.depth.dtype} of shape "
+                         f"{frame.depth.shape}, expected HxW float metres (a sensor's integer units divided by its "
+                         "depth_scale, as photoreg's readers do)")
+    if frame.color.size == 0:
+        raise ValueError(f"frame {frame.index} ({frame.source}): an empty image ({frame.color.shape})")
     if frame.color.shape[:2] != frame.depth.shape[:2]:
         raise ValueError(f"frame {frame.index} ({frame.source}): colour {frame.color.shape[:2]} and depth "
                          f"{frame.depth.shape[:2]} sizes differ")

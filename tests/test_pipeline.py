@@ -337,6 +337,53 @@ def _demo_lighting(frames: int, change=None, history: int | None = None) -> list
         pipe.close()
 
 
+def test_a_pipeline_in_a_user_s_code_checks_its_inputs_and_keeps_its_state_its_own():
+    """photoreg as a library: the session is checked as a file's is and copied (changed afterwards, nothing changes);
+    a result's arrays are the caller's (editing them in place scaled later frames' lighting 100 times); frames whose
+    intrinsics, shutter or depth cannot be right are refused by name (before: used silently, or a Warp or numpy
+    traceback); a closed pipeline processes nothing."""
+    def session(**lighting) -> Session:
+        s = load_session(REPO / "data" / "demo" / "session.toml")
+        s.device, s.objects = "cpu", []
+        s.lighting.stride, s.lighting.rays, s.lighting.bands = 8, 16, 3
+        for key, value in lighting.items():
+            setattr(s.lighting, key, value)
+        return s
+
+    rec = open_recording(REPO / "data" / "demo")
+    f0, f1 = rec.frame(0), rec.frame(1)
+    expected = pipeline_module.Pipeline(session(), rec.intrinsics)
+    expected.process(f0)
+    want = expected.process(f1).lighting.sh
+    s = session()
+    pipe = pipeline_module.Pipeline(s, rec.intrinsics)
+    s.lighting.bands = 5                                   # the pipeline's copy is not this
+    r0 = pipe.process(f0)
+    r0.lighting.sh *= 100.0
+    r0.pose[:3, 3] += 1.0
+    np.testing.assert_array_equal(pipe.process(f1).lighting.sh, want)
+    assert pipe.session.lighting.bands == 3 and not np.array_equal(f0.pose, r0.pose)
+    for bad, says in (({"stride": 8.0}, "key 'lighting.stride' must be int, got 8.0"),
+                      ({"denoise": "guide"}, "key 'lighting.denoise' must be one of")):
+        with pytest.raises(ValueError, match=re.escape(says)):
+            pipeline_module.Pipeline(session(**bad), rec.intrinsics)
+    painted = load_session(REPO / "data" / "demo" / "session.toml")
+    painted.device, painted.objects[0].albedo = "cpu", [200, 200, 200]   # 8-bit, not a reflectance
+    with pytest.raises(ValueError, match=re.escape("objects[0].albedo must be reflectances in 0..1")):
+        pipeline_module.Pipeline(painted, rec.intrinsics)
+    zoomed = dataclasses.replace(f1.intrinsics, fx=2 * f1.intrinsics.fx)
+    for bad, says in ((dataclasses.replace(f1, intrinsics=zoomed), "are not the pipeline's"),
+                      (dataclasses.replace(f1, shutter=16.0), "frame 1: shutter must be seconds in 0..1"),
+                      (dataclasses.replace(f1, depth=(f1.depth * 1000).astype(np.uint16)),
+                       "depth is uint16 of shape (240, 320), expected HxW float metres"),
+                      (dataclasses.replace(f1, depth=f1.depth[..., None]), "expected HxW float metres")):
+        with pytest.raises(ValueError, match=re.escape(says)):
+            pipe.process(bad)
+    pipe.close()
+    with pytest.raises(RuntimeError, match="this Pipeline was closed"):
+        pipe.process(f1)
+
+
 def test_a_first_frame_with_a_patch_of_depth_does_not_set_the_lighting_s_scale():
     """Frame 0 with depth on a 12 x 12 patch alone (one usable sample): its estimate is its own, flagged weak, and does
     not start the temporal filter, whose first estimate is every later solve's reference (its colour balance fixes

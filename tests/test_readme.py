@@ -197,6 +197,16 @@ def test_readme_command(command, workspace, request):
         run_photoreg(argv, workspace)
 
 
+def test_readme_python_examples_run():
+    """Every ```python block of the README runs as written, from the repository's root (the library example)."""
+    blocks = re.findall(r"```python\n(.*?)```", (REPO / "README.md").read_text(), re.S)
+    assert blocks
+    for code in blocks:
+        out = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True, timeout=600)
+        assert out.returncode == 0, out.stderr[-3000:]
+        assert out.stdout.strip(), "the example prints its results"
+
+
 def test_readme_session_reference_lists_every_key():
     """The README's session-file reference (its ```toml block) names every key of every section with the
     code's default, so a new or changed setting fails here until the README says so."""

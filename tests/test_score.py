@@ -388,6 +388,12 @@ def test_a_tracked_run_is_scored_in_the_recording_s_world(tmp_path):
     assert abs(med["tracked"]["irradiance_si_rmse_upper"] - med["recorded"]["irradiance_si_rmse_upper"]) < 0.03, med
     assert any("a tracked run (--no-poses): its lighting turned into the recording's world by frame 0" in n
                for n in scores["tracked"]["notes"])
+    # a library run writes no summary.json: its poses tell a tracked run from one lit from the recorded poses
+    for name in scores:
+        (tmp_path / name / "summary.json").unlink()
+        again = score(tmp_path / name, demo)["lighting"]
+        assert again["metrics"]["direction_deg"]["median"] == pytest.approx(scores[name]["metrics"]["direction_deg"][
+            "median"]), name
     # the frames the runs were asked for (summary.json), not the recording's 40, are what may be missing
     assert all(v["n_frames"] == 4 and v["n_missing"] == 0 and v["nonfinite_fraction"] == 0 for v in scores.values())
 
