@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import os
 import sys
 import types
 import typing
@@ -347,6 +348,8 @@ def validate(s: Session) -> None:
         cfg = getattr(s, section)                                                     # is checked as a file's is
         hints = typing.get_type_hints(type(cfg))
         for f in dataclasses.fields(cfg):
+            if isinstance(getattr(cfg, f.name), os.PathLike):   # a path built in code (recording.path, output.dir)
+                setattr(cfg, f.name, os.fspath(getattr(cfg, f.name)))
             v = _check_value(where, f"{section}.{f.name}", getattr(cfg, f.name), hints[f.name])
             choices = _CHOICES.get((section, f.name))
             if choices and v not in choices:

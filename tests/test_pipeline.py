@@ -356,6 +356,7 @@ def test_a_pipeline_in_a_user_s_code_checks_its_inputs_and_keeps_its_state_its_o
     expected.process(f0)
     want = expected.process(f1).lighting.sh
     s = session()
+    s.recording.path, s.output.dir = REPO / "data" / "demo", REPO / "out"   # paths as a user's code has them
     pipe = pipeline_module.Pipeline(s, rec.intrinsics)
     s.lighting.bands = 5                                   # the pipeline's copy is not this
     r0 = pipe.process(f0)
