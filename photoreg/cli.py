@@ -229,7 +229,8 @@ def build_parser() -> argparse.ArgumentParser:
     tsub = p.add_subparsers(dest="train_kind", required=True)
     t = tsub.add_parser("neural_soft", help="neural soft-shadow MLP per object (cached by mesh hash)")
     t.add_argument("session", help="session file (.toml) whose [[objects]] to train")
-    t.add_argument("--out", help="write weights here (default: the cache, $PHOTOREG_CACHE or ~/.cache/photoreg)")
+    t.add_argument("--out", help="write weights here (default: the cache, $PHOTOREG_CACHE or ~/.cache/photoreg, "
+                                 "where runs look, as in data/weights/neural_soft; a run does not read --out's folder)")
     t.add_argument("--force", action="store_true", help="train even when weights are cached")
 
     p = sub.add_parser("batch", help="run many session files, each into its own output folder (local workers or Ray)")

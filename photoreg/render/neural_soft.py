@@ -60,7 +60,8 @@ def plane_visibility(obj: VirtualObject, points: np.ndarray, light_dir: np.ndarr
     vis = np.ones(len(points), np.float32)
     notes: list[str] = []
     if d[2] < MIN_ELEVATION:
-        return vis, [f"{obj.source}: light at or below its ground plane: no plane shadow"]
+        return vis, [f"{obj.source}: light at or below its ground plane (the mesh's z = min z, its +z taken as up: a "
+                     "y-up mesh stood up by the session's rotation has it on its side): no plane shadow"]
     theta_max = math.radians(settings.theta_max_deg)
     if math.acos(min(d[2], 1.0)) > theta_max:
         phi = math.atan2(d[1], d[0])
