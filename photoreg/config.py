@@ -305,8 +305,7 @@ def load_session(path: str | Path, files: bool = True) -> Session:
                              f"(known: {', '.join(sorted([*sections, 'objects', 'device', 'frames']))})")
     if not s.recording.path:
         raise ValueError(f"{where}: key 'recording.path' is required")
-    for i, obj in enumerate(s.objects):
-        _check_object(obj, where, f"objects[{i}]")
+    validate(s)   # the objects' checks among them, before their paths are resolved
     if files:
         s.recording.path = str(resolve_path(s.recording.path, base, f"{where}: recording.path"))
         if not Path(s.recording.path).exists():
@@ -316,7 +315,6 @@ def load_session(path: str | Path, files: bool = True) -> Session:
             if not Path(obj.mesh).is_file():
                 raise FileNotFoundError(f"{where}: objects.mesh {obj.mesh} does not exist")
         s.output.dir = str(resolve_path(s.output.dir, base, f"{where}: output.dir"))
-    validate(s)
     return s
 
 

@@ -447,8 +447,8 @@ class Pipeline:
             raise RuntimeError("this Pipeline was closed: make a new one to process more frames")
         lc, rc = self.session.lighting, self.session.reconstruction
         k, own = frame.intrinsics, self.intrinsics   # the pipeline's are the ones every stage uses
-        if not np.allclose([k.width, k.height, k.fx, k.fy, k.cx, k.cy],
-                           [own.width, own.height, own.fx, own.fy, own.cx, own.cy], rtol=1e-6, atol=1e-9):
+        if k != own and not np.allclose([k.width, k.height, k.fx, k.fy, k.cx, k.cy],
+                                        [own.width, own.height, own.fx, own.fy, own.cx, own.cy], rtol=1e-6, atol=1e-9):
             raise ValueError(f"frame {frame.index} ({frame.source}): its intrinsics {k} are not the pipeline's {own}")
         if frame.shutter is not None:
             checked_shutter(frame.shutter, f"frame {frame.index}")

@@ -168,6 +168,14 @@ def clear_earlier(out: Path, dirs: dict[str, tuple[str, ...]], files: tuple[str,
     return removed
 
 
+def track_without_poses(s: Session, rec, who: str) -> None:
+    """A recording without poses has its camera tracked (recording.use_poses off), said on stderr by `who`: its
+    frames are otherwise neither fused nor lit."""
+    if s.recording.use_poses and not rec.has_poses:
+        print(f"{who}: {s.recording.path} has no poses: tracking the camera instead", file=sys.stderr)
+        s.recording.use_poses = False
+
+
 def writer_threads() -> int:
     """Threads writing a run's files beside the frames: half the threads CPU kernel launches may use (the frames
     keep the rest; a batch worker's share of the cores), at most WRITER_THREADS, at least one."""
@@ -185,9 +193,7 @@ def run_session(s: Session, quiet: bool = False, on_frame: Callable[[int, int], 
 
     rec = open_recording(s.recording.path, fmt=s.recording.format, undistort=s.recording.undistort)
     indices = select_frames(s.frames, len(rec), s.recording.path)
-    if s.recording.use_poses and not rec.has_poses:
-        print(f"photoreg: {s.recording.path} has no poses: tracking the camera instead", file=sys.stderr)
-        s.recording.use_poses = False
+    track_without_poses(s, rec, "photoreg")
     for warning in rec.warnings:
         print(f"photoreg: {s.recording.path}: {warning}", file=sys.stderr)
     out = Path(s.output.dir)

@@ -43,6 +43,7 @@ def bench_recording(session: Session, warmup: int = 2) -> dict:
     from ..io.recording import iter_frames, open_recording
     from ..kernels.launch import cpu_threads
     from ..pipeline import Pipeline
+    from ..runner import track_without_poses
 
     if warmup < 0:
         raise ValueError(f"bench: --warmup must be >= 0, got {warmup}")
@@ -50,9 +51,7 @@ def bench_recording(session: Session, warmup: int = 2) -> dict:
     indices = select_frames(session.frames, len(rec), session.recording.path)
     if len(indices) <= warmup:
         raise ValueError(f"bench: need more than {warmup} frames (warm-up), got {len(indices)}")
-    if session.recording.use_poses and not rec.has_poses:   # as photoreg run does: a frame without a pose is not fused
-        print(f"bench: {session.recording.path} has no poses: tracking the camera instead", file=sys.stderr)
-        session.recording.use_poses = False
+    track_without_poses(session, rec, "bench")   # as photoreg run does
     pipe = Pipeline(session, rec.intrinsics)
     timings, estimated = [], []
     try:

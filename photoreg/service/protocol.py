@@ -19,8 +19,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from ..config import (LightingConfig, ObjectConfig, ReconstructionConfig, RenderConfig, Session, _check_object,
-                      _fill, validate)
+from ..config import LightingConfig, ObjectConfig, ReconstructionConfig, RenderConfig, Session, _fill, validate
 from ..io.images import registered_depth
 from ..io.intrinsics import checked_intrinsics
 from ..io.native import depth_to_png16
@@ -370,8 +369,7 @@ def session_from_options(value, device: str, limits: Limits, meshes: Path | None
                 raise ProtocolError("too_large", f"hello.options.objects: {len(objs)} objects, this server takes at "
                                                  f"most {limits.max_objects}")
             s.objects = [_fill(ObjectConfig, o, "hello.options", f"objects[{i}]") for i, o in enumerate(objs)]
-            for i, o in enumerate(s.objects):
-                _check_object(o, "hello.options", f"objects[{i}]")
+            for i, o in enumerate(s.objects):   # their values are validate's (below), their meshes the server's
                 o.mesh = resolve_mesh(o.mesh, meshes, f"hello.options.objects[{i}].mesh")
         if "track" in opts:
             if not isinstance(opts["track"], bool):
