@@ -646,6 +646,33 @@ def test_render_window_holds_the_object_and_its_seam(tmp_path):
     assert stage.window(inside) == (0, 0, INTR.width, INTR.height)
 
 
+def test_camera_inside_an_object_is_said(tmp_path):
+    """An object placed round the camera (a scale or position mistake) is drawn from within: the frame's notes say
+    which object; a camera in an object's box but outside its surface (a torus's hole) is not flagged."""
+    from photoreg.config import Session
+    from photoreg.render.stage import RenderStage
+
+    torus = tmp_path / "torus.obj"
+    trimesh.creation.torus(major_radius=0.5, minor_radius=0.1).export(torus)
+    scene = load_scene([_cube(tmp_path, scale=0.2), ObjectConfig(mesh=str(torus), position=[2.0, 0, 0])])
+    assert scene.containing([0.0, 0.05, 0.02]) == [0]
+    assert scene.containing([2.0, 0.0, 0.0]) == [] and scene.containing([2.5, 0.0, 0.0]) == [1]
+    assert scene.containing([0.0, 0.0, 1.0]) == []
+    s = Session()
+    s.objects = [_cube(tmp_path, scale=3.0)]
+    s.lighting.stride, s.lighting.rays = 4, 16
+    stage = RenderStage(s, INTR, "cpu")
+    floor = _floor_grid()
+    camera = np.full((INTR.height, INTR.width, 3), 0.5, np.float32)
+    F = np.outer([1.0, 1.0, 1.0], np.eye(9)[0])
+    stage(camera, np.ones((INTR.height, INTR.width), np.float32), floor, None, LOOK_DOWN, F)
+    assert any("camera is inside object 0" in n for n in stage.last.notes)
+    s.objects = [_cube(tmp_path, scale=0.2)]
+    stage = RenderStage(s, INTR, "cpu")
+    stage(camera, np.ones((INTR.height, INTR.width), np.float32), floor, None, LOOK_DOWN, F)
+    assert not any("inside" in n for n in stage.last.notes)
+
+
 def test_upsampled_ratio_in_a_window_is_the_full_frames_there():
     """upsample_ratio over a window (the seam band reads only the real surface's window) gives the full frame's
     values there, bit for bit, and 1 where the samples' box does not reach; a window off the box is all 1."""

@@ -96,6 +96,9 @@ class RenderStage:
                           scene=self.scene, sun=sun, surface=surface, surface_origin=(x0, y0))
         t1 = time.perf_counter()
         self.last_input, self.last = inp, self.renderer(inp)
+        for k in self.scene.containing(pose[:3, 3]):
+            self.last.notes.append(f"the camera is inside object {k} ({self.scene.objects[k].source}): the frame shows "
+                                   "the object from within (check its position and scale)")
         t2 = time.perf_counter()
         if self.session.render.shutter != SHUTTER_CAMERA:   # the session's overrides the frame's own
             shutter = self.session.render.shutter
