@@ -27,7 +27,8 @@ HANDLERS = {
 
 def _add_run_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", help="output folder (overrides the session's [output] dir)")
-    p.add_argument("--frames", help="frames to process: N (first N), A:B or A:B:S (0-based, end exclusive)")
+    p.add_argument("--frames", help="frames to process: N (first N), A:B or A:B:S (0-based, end exclusive; ':' all, "
+                                    "whatever the session file says)")
     p.add_argument("--device", choices=["auto", "cpu", "cuda"], default=None, help="compute device (default auto)")
     p.add_argument("--stride", type=int, help="sample every n-th pixel for the transfer (1, 2, 4, ...)")
     p.add_argument("--rays", type=int, help="visibility rays per pixel over the hemisphere")

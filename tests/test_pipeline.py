@@ -88,6 +88,27 @@ def test_session_overrides_and_bad_options(tmp_path, capsys):
                  "--quiet"]) == 0
 
 
+def test_frame_selection_and_its_override(tmp_path):
+    """--frames: N first N, A:B and A:B:S end exclusive and clipped, ':' every frame, also over a session file's own
+    selection; bad specs are errors naming the option."""
+    from photoreg.cli import build_parser
+    from photoreg.config import parse_frames
+    from photoreg.runner import session_from_args
+
+    assert parse_frames("3", 10) == [0, 1, 2] and parse_frames("20", 4) == [0, 1, 2, 3]
+    assert parse_frames("2:5", 10) == [2, 3, 4] and parse_frames("1:9:3", 6) == [1, 4]
+    assert parse_frames(":", 4) == parse_frames("", 4) == [0, 1, 2, 3] and parse_frames("8:", 4) == []
+    for bad in ("a", "1:2:0", "-1:3", "1:2:3:4"):
+        with pytest.raises(ValueError, match="--frames"):
+            parse_frames(bad, 10)
+    session = tmp_path / "s.toml"
+    demo = (REPO / "data" / "demo").as_posix()
+    session.write_text(f'frames = "0:2"\n[recording]\npath = "{demo}"\n')
+    for given, frames in ((None, "0:2"), (":", ":")):
+        args = build_parser().parse_args(["run", str(session)] + (["--frames", given] if given else []))
+        assert session_from_args(args).frames == frames
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("name", ["tum_fr1_rpy", "iclnuim_livingroom1"])
 def test_real_recordings_give_finite_lighting_for_every_frame(data_dir, tmp_path, name):
