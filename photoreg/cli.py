@@ -25,8 +25,8 @@ HANDLERS = {
 }
 
 
-def _add_run_options(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--out", help="output folder (overrides the session's [output] dir)")
+def _add_run_options(p: argparse.ArgumentParser, out_help: str) -> None:
+    p.add_argument("--out", help=out_help)
     p.add_argument("--frames", help="frames to process: N (first N), A:B or A:B:S (0-based, end exclusive; ':' all, "
                                     "whatever the session file says)")
     p.add_argument("--device", choices=["auto", "cpu", "cuda"], default=None, help="compute device (default auto)")
@@ -64,10 +64,11 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("run", help="estimate per-frame lighting for a recording or a session file")
     p.add_argument("input", help="session file (.toml) or recording folder")
-    _add_run_options(p)
+    _add_run_options(p, "output folder (overrides the session's [output] dir; a bare recording's default: "
+                        "out/FOLDER_NAME)")
 
     p = sub.add_parser("demo", help="run on the embedded demo recording (data/demo)")
-    _add_run_options(p)
+    _add_run_options(p, "output folder (default out/demo)")
 
     p = sub.add_parser("info", help="describe a recording: frames, size, intrinsics, poses, depth range")
     p.add_argument("path")
@@ -129,7 +130,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--realtime", action="store_true",
                    help="send at the recording's frame times (the server drops frames it cannot keep up with)")
     p.add_argument("--window", type=int, default=2, help="frames in flight when not --realtime (default 2)")
-    p.add_argument("--out", help="save lighting.jsonl and summary.json here")
+    p.add_argument("--out", help="save lighting.jsonl, summary.json, trajectory.txt (a tracked stream) and "
+                                 "composite/ (a session with objects) here")
     p.add_argument("--frames", help="frames to send: N (first N), A:B or A:B:S (0-based, end exclusive)")
     p.add_argument("--color", choices=["png", "jpeg", "rgb8"], default="png", help="colour encoding (default png)")
     p.add_argument("--depth", choices=["png16", "u16", "f32"], default="png16", help="depth encoding (default png16)")

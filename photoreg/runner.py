@@ -289,9 +289,9 @@ def print_summary(summary: dict, out: str) -> None:
         print(f"{summary['frames_processed'] - summary['composites']} frame(s) without a pose have no composite "
               "(lighting.jsonl's notes say why)")
     print(f"mean ms per stage: {stages}  (total {t.get('total', 0):.1f})")
-    print(f"outputs in {out}: lighting.jsonl, summary.json, envmap/, sphere/"
-          + (", composite/, composite_linear/, lightmap/" if summary.get("objects") else "")
-          + (", composite.mp4" if summary.get("video") else "") + (", trajectory.txt" if "tracking" in summary else ""))
+    written = [n for n in ("lighting.jsonl", "summary.json", "envmap/", "sphere/", "composite/", "composite_linear/",
+                           "lightmap/", "composite.mp4", "trajectory.txt") if (Path(out) / n).exists()]
+    print(f"outputs in {out}: {', '.join(written)}")
 
 
 def run_command(args) -> int:

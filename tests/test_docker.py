@@ -112,6 +112,8 @@ def test_compose():
     assert mounts["/data"][1] == "ro", "recordings are not mounted read-only"
     assert svc["command"][5:] == ["--meshes", "/meshes"] and mounts["/meshes"][1] == "ro", "no read-only mesh folder"
     assert mounts["/out"][0] in doc["volumes"], "no named output volume at /out"
+    # passed through without a value: unset on the host, unset in the container (serve refuses an empty token)
+    assert svc["environment"] == ["PHOTOREG_TOKEN"]
 
 
 def test_dockerignore_keeps_what_install_needs():

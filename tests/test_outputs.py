@@ -306,6 +306,18 @@ def test_cli_names_the_file_it_cannot_write(tmp_path, capsys):
     assert "photoreg run: error:" in err and str(tmp_path / "composite") in err and "Traceback" not in err
 
 
+def test_run_names_the_outputs_it_wrote(tmp_path, capsys):
+    """The run's last line lists what is in its folder: no envmap/ or sphere/ with pictures_every = 0, no composites
+    without objects."""
+    from photoreg.cli import main
+
+    session = tmp_path / "s.toml"
+    session.write_text(f'[recording]\npath = "{(REPO / "data" / "demo").as_posix()}"\n[output]\npictures_every = 0\n')
+    assert main(["run", str(session), "--out", str(tmp_path / "o"), "--frames", "0:1", "--rays", "8", "--bands", "1",
+                 "--quiet"]) == 0
+    assert capsys.readouterr().out.splitlines()[-1] == f"outputs in {tmp_path / 'o'}: lighting.jsonl, summary.json"
+
+
 def test_ctrl_c_ends_a_command_without_a_traceback(tmp_path, monkeypatch, capsys):
     """Ctrl-C during any command (here as the run's frames raise it): status 130 and one line, no traceback."""
     from photoreg.cli import main

@@ -371,7 +371,7 @@ def stream_command(args) -> int:
             partial.close()
     summary = {"recording": str(rec.path), "url": args.url, "hello_ms": hello_ms, **summary, "frames_skipped": skipped}
     if options.get("track"):   # as `photoreg run --no-poses` reports it
-        summary["tracking"] = {"frames_tracked": len(tracked)}
+        summary["tracking"] = {"frames": len(tracked)}
         if rec.has_poses:
             summary["tracking"].update(ate_against({i: T for i, (_, T) in tracked.items()}, rec.poses))
     if out is not None and not summary["frames_processed"]:   # an earlier stream's outputs stand
@@ -398,7 +398,7 @@ def stream_command(args) -> int:
               f"server side p50 {srv['p50']:.1f}  p95 {srv['p95']:.1f}")
     if "tracking" in summary:
         t = summary["tracking"]
-        print(f"tracked {t['frames_tracked']} of the frames answered"
+        print(f"tracked {t['frames']} of the frames answered"
               + (f"; ATE against the recording's poses {t['ate_rmse_m'] * 1000:.1f} mm" if t.get("ate_rmse_m") else ""))
     if out is not None:
         print(f"outputs in {out}: lighting.jsonl, summary.json" + (", composite/" if summary["composites"] else "")
