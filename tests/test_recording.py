@@ -17,6 +17,7 @@ from photoreg.io.poses import check_pose, format_tum_line, interpolate_poses, re
 from photoreg.io.recording import iter_frames, open_recording
 from photoreg.io.redwood import numbered
 from photoreg.io.tum import associate, read_timestamped
+from photoreg.types import Intrinsics
 
 W, H = 8, 6
 DEPTH_SCALE = 5000.0
@@ -115,6 +116,8 @@ def test_tum_association_matches_associations_txt(tum_path):
     _, rows = read_timestamped(tum_path / "associations.txt", 4)
     pairs = associate(rgb_times, depth_times)
     assert [(rgb_rows[i][1], depth_rows[j][1]) for i, j in pairs] == [(r[1], r[3]) for r in rows]
+    big = np.array([1.7e18, 1.7e18 + 4096])    # where t +- 0.04 rounds to t, equal times still pair
+    assert associate(big, big) == [(0, 0), (1, 1)]
 
 
 def test_tum_poses_interpolated_near_groundtruth(tum_path):
@@ -378,7 +381,7 @@ def _frame_error(root: Path, i: int = 1) -> Exception:
     "missing depth.txt", "unsorted rgb.txt", "malformed rgb.txt", "bad timestamp", "non-finite pose",
     "non-unit quaternion", "broken intrinsics.json", "intrinsics.json missing key", "intrinsics.txt unknown key",
     "intrinsics.json bad shutter", "intrinsics.txt bad shutter", "intrinsics.json unknown key",
-    "intrinsics.json bad dist",
+    "intrinsics.json bad dist", "pose beyond reach", "intrinsics.txt key twice", "colour and depth never pair",
 ])
 def test_index_errors_name_file_and_line(tmp_path, case):
     write_native(tmp_path)
@@ -406,6 +409,21 @@ def test_index_errors_name_file_and_line(tmp_path, case):
     elif case == "broken intrinsics.json":
         js.write_text('{"width": 8,\n "height": 6,\n "fx": }')
         where = f"{js}:3"
+    elif case == "pose beyond reach":
+        first = gt.read_text().splitlines()[3]
+        _replace(gt, first, first.split()[0] + " 1e12 0 0 0 0 0 1")
+        where = f"{gt}:4: invalid pose (translation [1000000000000.0, 0.0, 0.0] beyond 1e+09 m)"
+    elif case == "colour and depth never pair":   # depth stamped in other units
+        dep = tmp_path / "depth.txt"
+        dep.write_text("".join(f"{float(t) * 1000:.3f} {f}\n" for t, f in (ln.split() for ln in
+                                                                           dep.read_text().splitlines()
+                                                                           if not ln.startswith("#"))))
+        where = f"{tmp_path}: no colour frame of rgb.txt"
+    elif case == "intrinsics.txt key twice":
+        js.unlink()
+        txt = tmp_path / "intrinsics.txt"
+        txt.write_text("fx 10\nfy 11\ncx 3.5\ncy 2.5\nfx 12\n")
+        where = f"{txt}:5: fx given again (first on line 1)"
     elif case == "intrinsics.json missing key":
         js.write_text('{"width": 8, "height": 6, "fx": 10, "fy": 10, "cx": 3.5}')
         where = f"{js}: missing cy"
@@ -429,6 +447,47 @@ def test_index_errors_name_file_and_line(tmp_path, case):
         txt.write_text("# calibration\nfx 10\nfy 11\ncx 3.5\ncy 2.5\nfocal 3\n")
         where = f"{txt}:6"
     assert where in str(_open_error(tmp_path))
+
+
+def test_what_the_reader_assumed_is_said(tmp_path):
+    """Notes and warnings where the files leave something to a default or give nothing: a depth scale not given (the
+    format's), one pose in groundtruth.txt (taken by the frames near it), poses stamped in other units (none
+    reaches a frame)."""
+    write_native(tmp_path)
+    js, gt = tmp_path / "intrinsics.json", tmp_path / "groundtruth.txt"
+    assert "intrinsics from intrinsics.json" in open_recording(tmp_path).notes
+    js.write_text(json.dumps({k: v for k, v in json.loads(js.read_text()).items() if k != "depth_scale"}))
+    assert "intrinsics from intrinsics.json (no depth_scale: 5000 units per metre, the format's)" in \
+        open_recording(tmp_path).notes
+    lines = [ln for ln in gt.read_text().splitlines() if not ln.startswith("#")]
+    gt.write_text(lines[0] + "\n")
+    rec = open_recording(tmp_path)
+    assert any("holds one pose" in n for n in rec.notes) and rec.poses[0] is not None
+    gt.write_text("".join(f"{float(ln.split()[0]) * 1000:.3f} {' '.join(ln.split()[1:])}\n" for ln in lines))
+    rec = open_recording(tmp_path)
+    assert not rec.has_poses and any("groundtruth.txt gives no frame a pose" in w for w in rec.warnings)
+
+
+def test_a_jpeg_cut_short_is_an_error_naming_it(tmp_path):
+    """A JPEG cut short (a copy interrupted) is refused, naming the file, where OpenCV would decode it with its
+    missing rows grey; one with data after its end (as some cameras write) is read; over the socket the same."""
+    from photoreg.io.images import read_rgb
+    from photoreg.service.protocol import ProtocolError, _decode_color
+
+    img = np.random.default_rng(0).integers(0, 255, (48, 64, 3), np.uint8)
+    data = cv2.imencode(".jpg", img)[1].tobytes()
+    whole, cut, extra = tmp_path / "whole.jpg", tmp_path / "cut.jpg", tmp_path / "extra.jpg"
+    whole.write_bytes(data)
+    cut.write_bytes(data[:len(data) // 2])
+    extra.write_bytes(data + b"\x00" * 64 + b"trailer")
+    assert cv2.imread(str(cut)) is not None                # what OpenCV alone would take
+    assert np.array_equal(read_rgb(whole), read_rgb(extra))
+    with pytest.raises(ValueError, match=re.escape(f"{cut}: JPEG data cut short")):
+        read_rgb(cut)
+    intr = Intrinsics(64, 48, 50.0, 50.0, 31.5, 23.5)
+    assert _decode_color("jpeg", data, intr).shape == (48, 64, 3)
+    with pytest.raises(ProtocolError, match="corrupt jpeg"):
+        _decode_color("jpeg", data[:len(data) // 2], intr)
 
 
 @pytest.mark.parametrize("case", ["missing image", "corrupt depth", "8-bit depth", "size mismatch",

@@ -63,11 +63,25 @@ def linear_to_srgb(img: np.ndarray) -> np.ndarray:
     return out
 
 
+def jpeg_cut_short(data: bytes) -> bool:
+    """Whether JPEG data stop inside their last scan (no end-of-image marker after the last start-of-scan): a file
+    cut short, which OpenCV decodes with the missing rows grey and only a warning on stderr. Markers cannot occur
+    inside the entropy-coded data (0xFF is stuffed), so the last 0xFFDA is the last scan's whatever comes after
+    the image (some cameras append data) or before it (an EXIF thumbnail)."""
+    if data[:2] != b"\xff\xd8":
+        return False
+    return data.rfind(b"\xff\xd9") < data.rfind(b"\xff\xda")
+
+
 def _imread(path: str | os.PathLike, flags: int, what: str) -> np.ndarray:
-    """cv2.imread with errors that name the file: missing, or not a readable `what`."""
-    if not Path(path).is_file():
-        raise FileNotFoundError(f"{path}: no such file")
-    img = cv2.imread(str(path), flags)
+    """cv2.imdecode of the file with errors that name it: missing, not a readable `what`, or a JPEG cut short."""
+    try:
+        data = Path(path).read_bytes()
+    except (FileNotFoundError, IsADirectoryError):
+        raise FileNotFoundError(f"{path}: no such file") from None
+    if jpeg_cut_short(data):
+        raise ValueError(f"{path}: JPEG data cut short (no end-of-image marker after the last scan)")
+    img = cv2.imdecode(np.frombuffer(data, np.uint8), flags)
     if img is None:
         raise ValueError(f"{path}: not a readable {what}")
     return img

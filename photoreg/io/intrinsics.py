@@ -48,9 +48,15 @@ def checked_intrinsics(values: dict, where: str) -> Intrinsics:
 JSON_KEYS = ("width", "height", "fx", "fy", "cx", "cy", "depth_scale", "shutter", "dist")
 
 
-def read_intrinsics_json(path: Path, depth_scale: float) -> tuple[Intrinsics, np.ndarray | None, float | None]:
-    """(intrinsics, distortion, shutter) of intrinsics.json {width, height, fx, fy, cx, cy, depth_scale, shutter,
-    dist}; depth_scale defaults to `depth_scale`, shutter (seconds) and dist ([k1, k2, p1, p2, k3], OpenCV's) to
+def _scale_source(path: Path, given: bool, depth_scale: float) -> str:
+    """Calibration.source of a file, saying when its depth scale is the format's default (depth in other units
+    reads wrong by a factor, silently but for this note)."""
+    return path.name if given else f"{path.name} (no depth_scale: {depth_scale:g} units per metre, the format's)"
+
+
+def read_intrinsics_json(path: Path, depth_scale: float) -> Calibration:
+    """Calibration of intrinsics.json {width, height, fx, fy, cx, cy, depth_scale, shutter, dist}; depth_scale
+    defaults to `depth_scale` (the source says so), shutter (seconds) and dist ([k1, k2, p1, p2, k3], OpenCV's) to
     None."""
     try:
         data = json.loads(read_text(path))
@@ -76,19 +82,24 @@ def read_intrinsics_json(path: Path, depth_scale: float) -> tuple[Intrinsics, np
                 or not all(isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x) for x in dist)):
             raise ValueError(f"{path}: dist must be {TXT_KEYS['dist']} finite numbers (k1 k2 p1 p2 k3), found {dist!r}")
         distortion = np.array(dist, dtype=np.float64)
-    return checked_intrinsics(values, str(path)), distortion, shutter
+    return Calibration(checked_intrinsics(values, str(path)), distortion,
+                       _scale_source(path, "depth_scale" in data, depth_scale), shutter)
 
 
-def read_intrinsics_txt(path: Path, depth_scale: float) -> tuple[Intrinsics, np.ndarray | None, float | None]:
-    """(intrinsics, distortion, shutter) of intrinsics.txt: lines `fx 517.3`, `cx ...`, optional `depth_scale`,
-    `width`, `height`, `dist k1 k2 p1 p2 k3` and `shutter SECONDS`; '#' comments. Size defaults to 640x480,
-    depth_scale to `depth_scale`."""
+def read_intrinsics_txt(path: Path, depth_scale: float) -> Calibration:
+    """Calibration of intrinsics.txt: lines `fx 517.3`, `cx ...`, optional `depth_scale`, `width`, `height`,
+    `dist k1 k2 p1 p2 k3` and `shutter SECONDS`, each once; '#' comments. Size defaults to 640x480, depth_scale to
+    `depth_scale` (the source says so)."""
     values: dict = {"width": VGA[0], "height": VGA[1], "depth_scale": depth_scale}
     distortion = shutter = None
+    seen: dict[str, int] = {}
     for lineno, fields in data_lines(path):
         key = fields[0]
         if key not in TXT_KEYS:
             raise ValueError(f"{path}:{lineno}: unknown key {key!r} (expected one of {', '.join(TXT_KEYS)})")
+        if key in seen:
+            raise ValueError(f"{path}:{lineno}: {key} given again (first on line {seen[key]})")
+        seen[key] = lineno
         numbers = parse_floats(fields[1:], path, lineno, TXT_KEYS[key])
         if key == "dist":
             distortion = np.array(numbers)
@@ -101,18 +112,16 @@ def read_intrinsics_txt(path: Path, depth_scale: float) -> tuple[Intrinsics, np.
         raise ValueError(f"{path}: missing {', '.join(missing)}")
     if distortion is not None and not np.all(np.isfinite(distortion)):
         raise ValueError(f"{path}: distortion coefficients must be finite")
-    return checked_intrinsics(values, str(path)), distortion, shutter
+    return Calibration(checked_intrinsics(values, str(path)), distortion,
+                       _scale_source(path, "depth_scale" in seen, depth_scale), shutter)
 
 
 def read_calibration(folder: Path, depth_scale: float) -> Calibration | None:
     """The folder's intrinsics.json, else its intrinsics.txt, else None (the format's defaults apply)."""
     if (folder / "intrinsics.json").is_file():
-        path = folder / "intrinsics.json"
-        intrinsics, distortion, shutter = read_intrinsics_json(path, depth_scale)
+        calib = read_intrinsics_json(folder / "intrinsics.json", depth_scale)
         ignored = " (intrinsics.txt beside it ignored)" if (folder / "intrinsics.txt").is_file() else ""
-        return Calibration(intrinsics, distortion, path.name + ignored, shutter)
+        return calib._replace(source=calib.source + ignored)
     if (folder / "intrinsics.txt").is_file():
-        path = folder / "intrinsics.txt"
-        intrinsics, distortion, shutter = read_intrinsics_txt(path, depth_scale)
-        return Calibration(intrinsics, distortion, path.name, shutter)
+        return read_intrinsics_txt(folder / "intrinsics.txt", depth_scale)
     return None

@@ -17,6 +17,8 @@ def pose_from_tum(values) -> np.ndarray:
     n = np.linalg.norm(q)
     if not np.all(np.isfinite(v[:3])):
         raise ValueError(f"invalid pose (non-finite translation {v[:3].tolist()})")
+    if np.abs(v[:3]).max() > MAX_TRANSLATION:
+        raise ValueError(f"invalid pose (translation {v[:3].tolist()} beyond {MAX_TRANSLATION:g} m)")
     if not np.all(np.isfinite(q)) or abs(n - 1.0) > 1e-2:
         raise ValueError(f"invalid pose (non-finite or non-unit quaternion, |q|={n:.4f})")
     T = np.eye(4)
@@ -62,7 +64,10 @@ def read_tum_trajectory(path) -> tuple[np.ndarray, np.ndarray]:
     return np.asarray(ts), np.stack(poses)
 
 
-def interpolate_poses(ts: np.ndarray, poses: np.ndarray, query: np.ndarray, max_gap: float = 0.25) -> list:
+MAX_GAP = 0.25   # seconds: the longest stretch without a pose that interpolation bridges
+
+
+def interpolate_poses(ts: np.ndarray, poses: np.ndarray, query: np.ndarray, max_gap: float = MAX_GAP) -> list:
     """Poses at query times (slerp rotation, linear translation); None where a query is outside
     the trajectory or its neighbouring samples are more than `max_gap` seconds apart."""
     out: list = []

@@ -10,7 +10,7 @@ import numpy as np
 
 from ..types import Intrinsics
 from .intrinsics import Calibration, read_calibration
-from .poses import interpolate_poses, read_tum_trajectory
+from .poses import MAX_GAP, interpolate_poses, read_tum_trajectory
 from .recording import Recording, data_lines
 
 MAX_DIFFERENCE = 0.02  # s, largest colour/depth time difference of a pair (TUM associate.py default)
@@ -67,7 +67,8 @@ def associate(first: np.ndarray, second: np.ndarray, max_difference: float = MAX
     closest first, each index used once; sorted by i. Both time arrays ascending."""
     candidates = []
     for i, t in enumerate(first):
-        lo, hi = np.searchsorted(second, [t - 2 * max_difference, t + 2 * max_difference])
+        lo = np.searchsorted(second, t - 2 * max_difference, side="left")    # sides: t +- d may round to t
+        hi = np.searchsorted(second, t + 2 * max_difference, side="right")
         candidates += [(abs(t - second[j]), i, j) for j in range(lo, hi) if abs(t - second[j]) < max_difference]
     used_first, used_second, pairs = set(), set(), []
     for _, i, j in sorted(candidates):
@@ -97,6 +98,10 @@ def open_tum(path: Path, native: bool, undistort: bool) -> Recording:
         rgb_times, rgb_rows = read_timestamped(path / "rgb.txt", 2)
         depth_times, depth_rows = read_timestamped(path / "depth.txt", 2)
         pairs = associate(rgb_times, depth_times)
+        if not pairs:
+            raise ValueError(f"{path}: no colour frame of rgb.txt ({rgb_times[0]:.6f} .. {rgb_times[-1]:.6f}) has a "
+                             f"depth frame of depth.txt ({depth_times[0]:.6f} .. {depth_times[-1]:.6f}) within "
+                             f"{MAX_DIFFERENCE} s: timestamps are seconds (or give associations.txt)")
         if len(pairs) < len(rgb_rows):
             kept = {i for i, _ in pairs}
             first = next(i for i in range(len(rgb_rows)) if i not in kept)
@@ -112,6 +117,13 @@ def open_tum(path: Path, native: bool, undistort: bool) -> Recording:
         gt_times, gt_poses = read_tum_trajectory(path / "groundtruth.txt")
         poses = interpolate_poses(gt_times, gt_poses, times)
         notes.append("poses from groundtruth.txt, interpolated to the colour frame times")
+        if len(gt_times) == 1:
+            notes.append(f"groundtruth.txt holds one pose: the frames within {MAX_GAP} s of it take it, the others "
+                         "have none")
+        elif all(T is None for T in poses):
+            warnings.append(f"groundtruth.txt gives no frame a pose: no colour frame time ({times[0]:.6f} .. "
+                            f"{times[-1]:.6f}) lies between two of its poses ({gt_times[0]:.6f} .. "
+                            f"{gt_times[-1]:.6f}) at most {MAX_GAP} s apart (timestamps are seconds)")
     return Recording(path=path, format="native" if native else "tum", intrinsics=calib.intrinsics,
                      timestamps=times, color_files=colors, depth_files=depths, poses=poses,
                      distortion=calib.distortion, undistort=undistort, notes=notes, warnings=warnings,
