@@ -696,8 +696,9 @@ def _pipeline(k: Intrinsics, **lighting):
 @pytest.mark.parametrize("sample_kernel", [False, True])
 def test_pipeline_hard_frames_are_finite_weak_and_named(sample_kernel):
     """Black, saturated, 90% depth holes, NaN/inf depth and a frame of another size in an analytic
-    floor-and-box recording (tests/scenes.py): finite, flagged, named; good frames around them are fine. Also with
-    the GPU's sample path (kernels.samples, here on Warp's CPU)."""
+    floor-and-box recording (tests/scenes.py): finite, flagged, named; good frames around them are fine; 10% holes
+    scattered (frame 10) empty most sample boxes, which its notes say. Also with the GPU's sample path
+    (kernels.samples, here on Warp's CPU)."""
     from scenes import ground_truth_sh, look_at, render
 
     from photoreg.types import Frame
@@ -707,7 +708,7 @@ def test_pipeline_hard_frames_are_finite_weak_and_named(sample_kernel):
     pipe.sample_kernel = sample_kernel
     rng = np.random.default_rng(11)
     results = {}
-    for i in range(10):
+    for i in range(11):
         a = -0.3 + 0.06 * i
         pose = look_at(np.array([1.2 * np.sin(a), -1.2 * np.cos(a), 0.8]), np.array([0.0, 0.0, 0.1]))
         color, depth = render(k, pose)
@@ -723,6 +724,8 @@ def test_pipeline_hard_frames_are_finite_weak_and_named(sample_kernel):
             depth[1::3] = np.inf
         elif i == 8:
             color, depth = color[:80], depth[:80]
+        elif i == 10:
+            depth = np.where(rng.random(depth.shape) < 0.1, 0.0, depth).astype(np.float32)
         frame = Frame(i, i / 30, color, depth, k, pose, source=f"synthetic {i}")
         if i == 8:
             with pytest.raises(ValueError, match=r"frame 8 \(synthetic 8\)"):
@@ -739,6 +742,8 @@ def test_pipeline_hard_frames_are_finite_weak_and_named(sample_kernel):
     assert any(re.fullmatch(r"(89|9[01])% of pixels without depth \(0, NaN or outside reconstruction.depth_min.."
                             r"depth_max\)", n) for n in results[6].diagnostics.notes), results[6].diagnostics.notes
     assert not any("without depth" in n for n in results[3].diagnostics.notes)
+    lost = [[n for n in results[i].diagnostics.notes if "lost as samples" in n] for i in (3, 9, 10)]
+    assert lost[:2] == [[], []] and re.fullmatch(r"\d+% of the surface's usable pixels lost as samples: .*", lost[2][0])
     # good frames (a box on a floor: 4 normals, so rank-deficient at 5 bands): the light is found (a lost light
     # is 60-100 degrees off; every frame here is 33-36 degrees off). Frame 9: 35.3 degrees (this orbit turns
     # 3.4 degrees a frame, so frames 3, 6 and 9 start views, where the filter's prior is discounted), 35.2 with
@@ -764,7 +769,7 @@ def test_pipeline_samples_are_capped_random_and_checked():
     frame = Frame(0, 0.0, color, depth, k, pose, source="synthetic")
     prep, pose, _ = pipe.observe(frame, {})
     maps = raycast_surface(pipe.volume.dense_grid(), k, pose, 0.1, 5.0, stride=1)
-    radiance, points, normals, clipped = pipe._samples(prep, maps, pose)
+    radiance, points, normals, clipped, _ = pipe._samples(prep, maps, pose)
     assert len(points) == 300 and np.isfinite(radiance).all() and clipped.shape == (300,)
     cam = (points - pose[:3, 3]) @ pose[:3, :3]                     # world -> camera
     rows = np.round(cam[:, 1] / cam[:, 2] * k.fy + k.cy).astype(int)
