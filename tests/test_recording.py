@@ -381,7 +381,7 @@ def _frame_error(root: Path, i: int = 1) -> Exception:
     "missing depth.txt", "unsorted rgb.txt", "malformed rgb.txt", "bad timestamp", "non-finite pose",
     "non-unit quaternion", "broken intrinsics.json", "intrinsics.json missing key", "intrinsics.txt unknown key",
     "intrinsics.json bad shutter", "intrinsics.txt bad shutter", "intrinsics.json unknown key",
-    "intrinsics.json bad dist", "pose beyond reach", "intrinsics.txt key twice", "colour and depth never pair",
+    "intrinsics.json bad dist", "normalised focal length", "principal point outside", "pose beyond reach", "intrinsics.txt key twice", "colour and depth never pair",
 ])
 def test_index_errors_name_file_and_line(tmp_path, case):
     write_native(tmp_path)
@@ -409,6 +409,12 @@ def test_index_errors_name_file_and_line(tmp_path, case):
     elif case == "broken intrinsics.json":
         js.write_text('{"width": 8,\n "height": 6,\n "fx": }')
         where = f"{js}:3"
+    elif case == "normalised focal length":
+        js.write_text(json.dumps({**json.loads(js.read_text()), "fx": 0.8, "fy": 0.8}))
+        where = f"{js}: fx = 0.8 is under a pixel"
+    elif case == "principal point outside":
+        js.write_text(json.dumps({**json.loads(js.read_text()), "cy": 1e7}))
+        where = f"{js}: cy = 10000000.0 lies far outside the 8x6 image"
     elif case == "pose beyond reach":
         first = gt.read_text().splitlines()[3]
         _replace(gt, first, first.split()[0] + " 1e12 0 0 0 0 0 1")

@@ -41,6 +41,13 @@ def checked_intrinsics(values: dict, where: str) -> Intrinsics:
     for key in ("cx", "cy"):
         if not math.isfinite(values[key]):
             raise ValueError(f"{where}: {key} must be a finite number, found {values[key]}")
+    for f, c, size in (("fx", "cx", w), ("fy", "cy", h)):
+        if values[f] < 1:
+            raise ValueError(f"{where}: {f} = {values[f]} is under a pixel: focal lengths are in pixels (normalised "
+                             f"ones times the image size)")
+        if not -size <= values[c] <= 2 * size:
+            raise ValueError(f"{where}: {c} = {values[c]} lies far outside the {w}x{h} image: the principal point "
+                             "is in pixels")
     return Intrinsics(int(w), int(h), float(values["fx"]), float(values["fy"]),
                       float(values["cx"]), float(values["cy"]), float(values["depth_scale"]))
 
