@@ -280,6 +280,8 @@ def load_session(path: str | Path, files: bool = True) -> Session:
     and output folder are kept as written and not looked for (a client asking a server, which has its own, for what
     the session does)."""
     path = Path(path)
+    if path.is_dir():
+        raise ValueError(f"{path}: a folder, not a session file (.toml)")
     if not path.is_file():
         raise FileNotFoundError(f"{path}: session file not found")
     try:

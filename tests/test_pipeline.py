@@ -73,6 +73,8 @@ def test_session_overrides_and_bad_options(tmp_path, capsys):
         bad.write_text(demo.replace(albedo, f"albedo = {value}"))
         with pytest.raises(ValueError, match=message):
             load_session(bad)
+    with pytest.raises(ValueError, match=re.escape(f"{where}: a folder, not a session file (.toml)")):
+        load_session(where)                                            # (photoreg train takes session files alone)
     bad.write_text(demo.replace(f'path = "{where}"', 'path = "${PHOTOREG_NO_SUCH_VARIABLE}/demo"'))
     with pytest.raises(ValueError, match=re.escape(f"{bad}: recording.path '${{PHOTOREG_NO_SUCH_VARIABLE}}/demo': "
                                                    "environment variable PHOTOREG_NO_SUCH_VARIABLE is not set")):

@@ -69,6 +69,10 @@ def test_bad_objects_are_errors(tmp_path):
         load_scene([_cube(tmp_path, position=[0.0, math.nan, 0.0])])
     with pytest.raises(ValueError, match=r"cube.obj: the object spans 100 m as placed \(scale 100.0\), more than 50 m"):
         load_scene([_cube(tmp_path, scale=100.0)])
+    flat = tmp_path / "flat.obj"                     # every triangle a line: nothing to draw or to cast a shadow
+    flat.write_text("v 0 0 0\nv 1 0 0\nv 2 0 0\nf 1 2 3\n")
+    with pytest.raises(ValueError, match="flat.obj: mesh has no area"):
+        load_scene([ObjectConfig(mesh=str(flat))])
     with pytest.raises(ValueError, match="no renderer"):
         get_renderer("raytraced")
 

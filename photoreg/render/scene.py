@@ -174,10 +174,12 @@ def load_object(obj: ObjectConfig) -> VirtualObject:
     except Exception as e:  # trimesh raises many types for unreadable files
         raise ValueError(f"{path}: cannot read mesh ({e})") from None
     if not all(isinstance(m, trimesh.Trimesh) for m in parts) or not any(len(m.faces) for m in parts):
-        raise ValueError(f"{path}: mesh has no triangles")
+        raise ValueError(f"{path}: mesh has no triangles (those with a non-finite vertex are dropped on reading)")
     local = np.concatenate([np.asarray(m.vertices, np.float64) for m in parts])
     if not np.all(np.isfinite(local)):
         raise ValueError(f"{path}: mesh has non-finite vertices")
+    if not sum(m.area for m in parts) > 0:
+        raise ValueError(f"{path}: mesh has no area (every triangle degenerate)")
     v = local @ T[:3, :3].T + T[:3, 3]
     extent = float(np.ptp(v, axis=0).max())
     if extent > MAX_OBJECT_EXTENT:
