@@ -157,12 +157,12 @@ class Pipeline:
     def _samples(self, prep: Prepared, maps, pose: np.ndarray,
                  cap: int | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, float]:
         """Radiance (box average), world points, normals and whether the box holds clipped pixels alone
-        (lighting.censored: a lower bound), and the share of the surface's usable pixels whose box is not whole
-        (scattered depth holes empty it: the frame's notes say so), at usable sample pixels (the maps' stride: lighting.stride, or GAIN_STRIDE
+        (lighting.censored: a lower bound) at usable sample pixels (the maps' stride: lighting.stride, or GAIN_STRIDE
         for a held frame's gain) whose fused surface agrees with the frame's depth (photoreg.lighting.samples): at
         most `cap` (default lighting.max_samples) of them, a random subset as the solve would take. Only a surplus of
         candidates is checked, so the cost does not grow with the resolution (stride 1 at 640x480: 8000 samples of
-        300000 pixels)."""
+        300000 pixels). Last, the share of the surface's usable pixels whose box is not whole (scattered depth holes
+        empty boxes: the frame's notes say so)."""
         lc = self.session.lighting
         st = maps.stride
         gap = lc.max_depth_gap_voxels * self.session.reconstruction.voxel_size

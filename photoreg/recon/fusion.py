@@ -227,8 +227,8 @@ class TSDFVolume:
         size_m = dims_blocks * self.cfg.block_resolution * self.cfg.voxel_size
         return (f"dense SDF brick would need {n_vox} voxels ({size_m[0]:.4g} x {size_m[1]:.4g} x {size_m[2]:.4g} m at "
                 f"{self.cfg.voxel_size} m), more than FusionConfig.max_dense_voxels = {self.cfg.max_dense_voxels}: "
-                "a wrong pose or wrong intrinsics, or a scene that needs larger voxels (reconstruction.voxel_size) or a smaller "
-                "reconstruction.depth_max")
+                "a wrong pose or wrong intrinsics, or a scene that needs larger voxels (reconstruction.voxel_size) "
+                "or a smaller reconstruction.depth_max")
 
     def _ensure_covers(self, lo: np.ndarray, hi: np.ndarray) -> None:
         """Allocate or grow the brick so that it covers blocks [lo, hi] (inclusive), as _brick sizes it."""
