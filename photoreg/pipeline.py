@@ -489,7 +489,7 @@ class Pipeline:
         the worker free (and lighting.every due) hands its estimate to it."""
         lc, rc = self.session.lighting, self.session.reconstruction
         t_all = time.perf_counter() if t_start is None else t_start
-        F, diag, composite, region = None, None, None, None
+        F, diag, composite, region, in_view = None, None, None, None, None
         if pose is not None:
             self._frames += 1
             if self._in_flight is not None and self._in_flight[2].done():
@@ -522,6 +522,7 @@ class Pipeline:
                 # the composite keeps the preprocessed colour outside the renderer's region: the frame's own unless
                 # the luminance was denoised
                 region = self.render.region if lc.denoise == "none" else None
+                in_view = self.render.in_view
                 notes = [*notes, *(f"render: {n}" for n in self.render.last.notes)]   # why it drew no shadow, say
         if F is None:  # no pose: keep the previous estimate, its light and the frame it came from (or darkness), weak
             prev = self.prev_F if self.prev_F is not None else np.zeros((3, self.solver_cfg.fit_bands ** 2))
@@ -544,4 +545,4 @@ class Pipeline:
         # next solve's reference were the array handed back)
         return FrameResult(frame.index, frame.timestamp, Lighting(F.sh.copy()), diag, sh.dominant_direction(F.sh), t,
                            composite=composite, composite_region=region,
-                           pose=None if pose is None else np.array(pose, dtype=np.float64))
+                           pose=None if pose is None else np.array(pose, dtype=np.float64), objects_in_view=in_view)

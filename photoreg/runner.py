@@ -43,6 +43,7 @@ class FrameDone:
     timestamp: float
     weak: bool
     composited: bool
+    in_view: bool             # a pixel of its composite shows an object
     pose: np.ndarray | None   # kept where the camera is tracked (trajectory.txt)
 
 
@@ -221,7 +222,7 @@ def run_session(s: Session, quiet: bool = False, on_frame: Callable[[int, int], 
                     clear_earlier(out, {**PICTURE_DIRS, **COMPOSITE_DIRS}, tuple(
                         n for n in RUN_FILES if video is None or n != video.tmp.name))
                 results.append(FrameDone(r.index, r.timestamp, r.diagnostics.weak, r.composite is not None,
-                                         r.pose if pipe.tracker is not None else None))
+                                         bool(r.objects_in_view), r.pose if pipe.tracker is not None else None))
                 stage_ms.add(r.timings_ms)
                 f.write(json.dumps(result_record(r)) + "\n")
                 f.flush()
@@ -261,6 +262,7 @@ def run_session(s: Session, quiet: bool = False, on_frame: Callable[[int, int], 
         "objects": len(s.objects), "shadows": s.render.shadows if s.objects else None,
         # frames composited (a frame without a pose, recorded or tracked, has no composite and no video frame)
         "composites": sum(r.composited for r in results) if s.objects else None,
+        "objects_in_view": sum(r.in_view for r in results) if s.objects else None,   # composites showing an object
         "video": None if video is None else {"file": video.path.name, "frames": video.frames, "fps": round(fps, 3)},
         "timings_ms_mean": stage_ms.means(),
         "settings": {"lighting": vars(s.lighting), "reconstruction": vars(s.reconstruction),
@@ -288,6 +290,11 @@ def print_summary(summary: dict, out: str) -> None:
     if summary.get("objects") and summary["composites"] < summary["frames_processed"]:
         print(f"{summary['frames_processed'] - summary['composites']} frame(s) without a pose have no composite "
               "(lighting.jsonl's notes say why)")
+    if summary.get("composites") and not summary["objects_in_view"]:
+        tracked = (" A tracked run's (--no-poses) world is its first camera's frame (x right, y down, z forward), "
+                   "not the recording's." if "tracking" in summary else "")
+        print(f"photoreg: warning: no composite shows an object: check the objects' positions.{tracked}",
+              file=sys.stderr)
     print(f"mean ms per stage: {stages}  (total {t.get('total', 0):.1f})")
     written = [n for n in ("lighting.jsonl", "summary.json", "envmap/", "sphere/", "composite/", "composite_linear/",
                            "lightmap/", "composite.mp4", "trajectory.txt") if (Path(out) / n).exists()]

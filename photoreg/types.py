@@ -140,3 +140,4 @@ class FrameResult:
     # (4, 4) camera-to-world the frame was fused and lit from: the recording's, or the tracked one (recording.use_poses
     # false: the world is then the first frame's camera); None where it had none (not fused)
     pose: np.ndarray | None = None
+    objects_in_view: bool | None = None   # whether a pixel of the composite shows an object; None: no composite

@@ -775,6 +775,26 @@ def test_render_window_with_egl(tmp_path):
     assert r.returncode == 0 and r.stdout.strip().endswith("ok"), r.stderr[-2000:]
 
 
+def test_objects_out_of_every_view_are_warned_of(tmp_path, capsys):
+    """An object placed where no frame sees it (here behind the demo's cameras; a tracked run's first-camera world
+    taken for the recording's does it too): the run says so at its end, and summary.json counts no frame with an
+    object in view."""
+    import json
+
+    from photoreg.cli import main
+
+    demo = REPO / "data" / "demo"
+    session = tmp_path / "s.toml"
+    session.write_text((demo / "session.toml").read_text().replace('path = "."', f'path = "{demo.as_posix()}"')
+                       .replace('mesh = "object.obj"', f'mesh = "{(demo / "object.obj").as_posix()}"')
+                       .replace("position = [0.0, 0.0, 0.0]", "position = [0.0, 0.0, -40.0]"))
+    assert main(["run", str(session), "--out", str(tmp_path / "o"), "--frames", "0:2", "--rays", "16", "--stride",
+                 "8", "--quiet"]) == 0
+    assert "warning: no composite shows an object: check the objects' positions" in capsys.readouterr().err
+    summary = json.loads((tmp_path / "o" / "summary.json").read_text())
+    assert summary["composites"] == 2 and summary["objects_in_view"] == 0
+
+
 def test_textured_object_composites_its_texture(tmp_path):
     """A textured cube on the floor (its top face's texture coordinates its x and y): the composite of its top face,
     lit alike everywhere, is the texture's albedo times one shading, whatever the texel."""
@@ -819,6 +839,7 @@ def test_demo_video_holds_every_composite(demo_run):
 
     summary = json.loads((demo_run / "summary.json").read_text())
     assert summary["video"] == {"file": "composite.mp4", "frames": 21, "fps": 30.0}
+    assert summary["composites"] == summary["objects_in_view"] == 21
     cap = cv2.VideoCapture(str(demo_run / "composite.mp4"))
     frames = []
     while True:

@@ -791,7 +791,8 @@ def solve(radiance, transfer, normals, visible, cfg: SolverConfig, prior=None, m
         notes.append("unobserved directions: " + ", ".join(missing))
     unassigned = int((labels < 0).sum())
     if unassigned:
-        notes.append(f"{unassigned} samples in no albedo region")
+        notes.append(f"{unassigned} samples in no albedo region, left out of the fit (their colours form no cluster "
+                     "large enough: textured or mixed surfaces; a concern only where they are most of the samples)")
     unclipped = int(((w > 0) & ~clip).sum())
     if censored:
         binding = int((clip & (w > 0) & (pred < I_shown).any(axis=1)).sum())

@@ -39,6 +39,7 @@ class RenderStage:
         # box outside which the latest composite is the camera frame: its Layers.region, grown by the motion blur
         self.region: tuple[int, int, int, int] | None = None
         self._previous: tuple[float, np.ndarray] | None = None  # (timestamp, pose) of the latest frame rendered
+        self.in_view = False   # whether a pixel of the latest frame shows an object (after the real occlusion)
 
     def directions(self, bands: int) -> tuple[np.ndarray, np.ndarray]:
         """The ray set for `bands`, made once (same rays and seed as the lighting solve)."""
@@ -89,6 +90,7 @@ class RenderStage:
             real_depth[y0:y1, x0:x1] = np.where(surface.depth > 0, surface.depth,
                                                 np.nan_to_num(sensor_depth[y0:y1, x0:x1]))
         gb = self.gbuffer.render(pose, real_depth, tolerance=0.5 * rc.voxel_size, window=(x0, y0, x1, y1))
+        self.in_view = bool((gb.coverage[gb.box] > 0).any())
         inp = RenderInput(camera=camera, F=np.asarray(F, np.float64), gain=float(gain), grid=grid,
                           virtual=self.virtual, maps=maps, gbuffer=gb, bounds=self.scene.bounds,
                           directions=self.directions, offset=lc.ray_offset_voxels * rc.voxel_size,
