@@ -282,6 +282,14 @@ def run_session(s: Session, quiet: bool = False, on_frame: Callable[[int, int], 
     return summary
 
 
+def against_recorded(tracking: dict) -> str:
+    """The printed end of a tracked run's or stream's line: its score against the recording's poses, if any."""
+    if tracking.get("ate_rmse_m") is None:
+        return ""
+    return (f"; against the recording's poses: positions {tracking['ate_rmse_m'] * 1000:.1f} mm, orientations "
+            f"{tracking['rotation_rmse_deg']:.2f} deg RMSE")
+
+
 def print_summary(summary: dict, out: str) -> None:
     t = summary["timings_ms_mean"]
     stages = "  ".join(f"{k} {v:.1f}" for k, v in t.items() if k != "total")
@@ -295,6 +303,10 @@ def print_summary(summary: dict, out: str) -> None:
                    "not the recording's." if "tracking" in summary else "")
         print(f"photoreg: warning: no composite shows an object: check the objects' positions.{tracked}",
               file=sys.stderr)
+    if "tracking" in summary:
+        tr = summary["tracking"]
+        failed = len(tr["failures"]) + tr.get("failures_not_listed", 0)
+        print(f"tracked {tr['frames']} frames, {failed} failed, {tr['unconfirmed']} unconfirmed{against_recorded(tr)}")
     print(f"mean ms per stage: {stages}  (total {t.get('total', 0):.1f})")
     written = [n for n in ("lighting.jsonl", "summary.json", "envmap/", "sphere/", "composite/", "composite_linear/",
                            "lightmap/", "composite.mp4", "trajectory.txt") if (Path(out) / n).exists()]

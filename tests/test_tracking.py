@@ -18,7 +18,8 @@ from photoreg.lighting.visualize import lit_sphere, tonemap
 from photoreg.pipeline import Pipeline
 from photoreg.preprocess import prepare
 from photoreg.recon.fusion import FusionConfig, TSDFVolume
-from photoreg.recon.tracking import FIT_BINS, MAX_LISTED, MAX_PREDICT_S, RECENT_FITS, Tracker, _View, ate_rmse
+from photoreg.recon.tracking import (FIT_BINS, MAX_LISTED, MAX_PREDICT_S, RECENT_FITS, Tracker, _View, ate_rmse,
+                                     rotation_rmse_deg)
 from photoreg.types import Intrinsics
 from scenes import write_recording
 
@@ -62,6 +63,14 @@ def test_ate_is_zero_for_a_rigidly_moved_copy_and_measures_noise():
     assert 0.005 < ate_rmse(noisy, gt)[0] < 0.02
     with pytest.raises(ValueError):
         ate_rmse({0: np.eye(4)}, gt)
+    # orientations: a common rotation of the whole trajectory is no error; each camera turned 2 degrees about an axis
+    # of its own is 2 degrees whatever the positions say (noisy's positions are off, its orientations not)
+    assert rotation_rmse_deg(moved, gt) < 1e-6 and rotation_rmse_deg(noisy, gt) < 1e-6
+    axes = rng.normal(size=(len(gt), 3))
+    turned = {i: A @ T for i, T in gt.items()}
+    for (i, T), axis in zip(turned.items(), axes):
+        T[:3, :3] = T[:3, :3] @ Rotation.from_rotvec(np.radians(2) * axis / np.linalg.norm(axis)).as_matrix()
+    assert 1.7 < rotation_rmse_deg(turned, gt) <= 2.0 + 1e-9
 
 
 def test_tracking_stats_stay_bounded_over_a_long_stream():
@@ -108,7 +117,7 @@ def test_an_alignment_nothing_confirms_is_reported(tmp_path):
     assert report["failures"] == [] and report["unconfirmed"] == 1 and report["unconfirmed_frames"] == [1]
 
 
-def test_tracking_frames_far_apart_on_tum(data_dir, tmp_path):
+def test_tracking_frames_far_apart_on_tum(data_dir, tmp_path, capsys):
     """Every 16th frame of fr1_rpy (half a second and 20-60 degrees of turn apart, as a live stream that drops
     frames hands them over): the predicted and the feature-matched guesses keep the trajectory on the motion
     capture's; from a standing start alone 4 of the 7 frames failed and the rest lay 58 mm off. lighting.jsonl
@@ -126,6 +135,10 @@ def test_tracking_frames_far_apart_on_tum(data_dir, tmp_path):
     np.testing.assert_allclose(tracked[0], np.eye(4), atol=1e-12)
     gt = open_recording(rec_path).poses
     assert ate_rmse(tracked, {i: gt[i] for i in tracked})[0] == pytest.approx(tracking["ate_rmse_m"], abs=1e-5)
+    assert 0 < tracking["rotation_rmse_deg"] < 3
+    assert (f"tracked 7 frames, 0 failed, {tracking['unconfirmed']} unconfirmed; against the recording's poses: "
+            f"positions {tracking['ate_rmse_m'] * 1000:.1f} mm, orientations {tracking['rotation_rmse_deg']:.2f} deg "
+            "RMSE") in capsys.readouterr().out
     times, poses = read_tum_trajectory(out / "trajectory.txt")   # the same poses as TUM lines
     np.testing.assert_allclose(times, [r["timestamp"] for r in records], atol=1e-6)
     np.testing.assert_allclose(poses, [r["pose"] for r in records], atol=1e-6)

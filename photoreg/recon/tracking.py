@@ -313,13 +313,28 @@ def _agree(a: np.ndarray, b: np.ndarray, metres: float = AGREE_M, degrees: float
 
 def ate_against(tracked: dict, recorded) -> dict:
     """summary.json's score of tracked poses (frame index -> 4x4) against a recording's (index -> 4x4 or None):
-    {"ate_rmse_m", "ate_frames" (the frames with both)}, or {"ate_rmse_m": None, "ate_note": why} where too few
-    frames have both."""
+    {"ate_rmse_m", "rotation_rmse_deg", "ate_frames" (the frames with both)}, or {"ate_rmse_m": None, "ate_note":
+    why} where too few frames have both."""
     gt = {i: recorded[i] for i in tracked if recorded[i] is not None}
     try:
-        return {"ate_rmse_m": round(ate_rmse(tracked, gt)[0], 5), "ate_frames": len(gt)}
+        return {"ate_rmse_m": round(ate_rmse(tracked, gt)[0], 5),
+                "rotation_rmse_deg": round(rotation_rmse_deg(tracked, gt), 3), "ate_frames": len(gt)}
     except ValueError as e:
         return {"ate_rmse_m": None, "ate_note": str(e)}
+
+
+def rotation_rmse_deg(est: dict, gt: dict) -> float:
+    """RMSE of the camera orientations' angles (degrees) after the best rotation of the estimate onto ground truth
+    (the projection onto SO(3) of the sum of R_gt R_est^T), over frames present in both: what moves an inserted
+    object far from the camera, which the positions' ATE does not see (a camera turning in place)."""
+    keys = sorted(set(est) & set(gt))
+    if not keys:
+        raise ValueError("no frame has both poses")
+    Re, Rg = np.stack([est[k][:3, :3] for k in keys]), np.stack([gt[k][:3, :3] for k in keys])
+    U, _, Vt = np.linalg.svd(np.einsum("kij,klj->il", Rg, Re))
+    align = U @ np.diag([1, 1, np.sign(np.linalg.det(U @ Vt))]) @ Vt
+    cos = (np.einsum("kji,jl,kli->k", Rg, align, Re) - 1) / 2      # trace(Rg^T align Re)
+    return float(np.degrees(np.sqrt(np.mean(np.arccos(np.clip(cos, -1, 1)) ** 2))))
 
 
 def ate_rmse(est: dict, gt: dict) -> tuple[float, np.ndarray]:

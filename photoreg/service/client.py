@@ -26,7 +26,7 @@ from websockets.sync.client import connect as ws_connect
 
 from ..io.ahead import Ahead
 from ..io.atomic import atomic_path, check_output_dir, write_json
-from ..runner import Progress, StageTimes, clear_earlier, writer_threads
+from ..runner import Progress, StageTimes, against_recorded, clear_earlier, writer_threads
 from ..types import Frame, Intrinsics
 from .protocol import (CLIENT_RECONSTRUCTION_KEYS, ProtocolError, decode, decode_composite, encode, encode_frame,
                        hello_message, record_from_lighting, token_option)
@@ -398,8 +398,7 @@ def stream_command(args) -> int:
               f"server side p50 {srv['p50']:.1f}  p95 {srv['p95']:.1f}")
     if "tracking" in summary:
         t = summary["tracking"]
-        print(f"tracked {t['frames']} of the frames answered"
-              + (f"; ATE against the recording's poses {t['ate_rmse_m'] * 1000:.1f} mm" if t.get("ate_rmse_m") else ""))
+        print(f"tracked {t['frames']} of the frames answered{against_recorded(t)}")
     if out is not None:
         print(f"outputs in {out}: lighting.jsonl, summary.json" + (", composite/" if summary["composites"] else "")
               + (", trajectory.txt" if "tracking" in summary else ""))
