@@ -387,8 +387,12 @@ def test_transfer_next_to_a_wall(room):
         assert np.all(np.isfinite(res.transfer))
 
 
-def test_transfer_on_raycast_samples(room):
-    """The full chain on a strided ray cast: Warp maps go straight in (no host copy); all finite."""
+def test_transfer_on_raycast_samples(room, monkeypatch):
+    """The full chain on a strided ray cast: Warp maps go straight in (no host copy); all finite. The projection's
+    thread layouts (a point's coefficients in one thread on the CPU, one thread each on a GPU) give the same bits,
+    up to the 8 bands a session allows."""
+    import photoreg.kernels.transfer as transfer
+
     _, poses, _, grid = room
     maps = raycast_surface(grid, K320, poses[0], 0.1, 4.0, stride=8)
     dirs, Y = make_direction_set(32, 3, seed=0)
@@ -398,6 +402,17 @@ def test_transfer_on_raycast_samples(room):
     assert np.all(np.isfinite(res.transfer)) and np.all(np.isfinite(res.visible_fraction))
     valid = maps.valid.ravel()
     assert np.all(res.transfer[~valid] == 0) and np.all(res.visible_fraction[~valid] == 0)
+    layouts = []
+    for group in (lambda device, K: K, lambda device, K: 1):
+        monkeypatch.setattr(transfer, "_project_group", group)
+        layouts.append(radiance_transfer(grid, maps.vertex_wp, maps.normal_wp, *make_direction_set(40, 8, seed=0),
+                                         offset=VOXEL, ray_length=0.5))
+    assert layouts[0].transfer.shape == (n, 64) and np.abs(layouts[0].transfer).max() > 0
+    np.testing.assert_array_equal(layouts[0].transfer, layouts[1].transfer)
+    np.testing.assert_array_equal(layouts[0].visible_fraction, layouts[1].visible_fraction)
+    with pytest.raises(ValueError, match="81 coefficients, more than 64"):
+        radiance_transfer(grid, maps.vertex_wp, maps.normal_wp, *make_direction_set(48, 9, seed=0), offset=VOXEL,
+                          ray_length=0.5)
     frac = res.visible_fraction[valid]
     assert np.all((frac >= 0) & (frac <= 1)) and 0.3 < frac.mean() < 1.0
     from_numpy = radiance_transfer(grid, maps.vertex, maps.normal, dirs, Y, offset=VOXEL, ray_length=0.5)

@@ -135,7 +135,7 @@ def test_tracking_frames_far_apart_on_tum(data_dir, tmp_path, capsys):
     np.testing.assert_allclose(tracked[0], np.eye(4), atol=1e-12)
     gt = open_recording(rec_path).poses
     assert ate_rmse(tracked, {i: gt[i] for i in tracked})[0] == pytest.approx(tracking["ate_rmse_m"], abs=1e-5)
-    assert 0 < tracking["rotation_rmse_deg"] < 3
+    assert 0 < tracking["rotation_rmse_deg"] < 5   # 4.1 degrees: against poses at the colour frames' times
     assert (f"tracked 7 frames, 0 failed, {tracking['unconfirmed']} unconfirmed; against the recording's poses: "
             f"positions {tracking['ate_rmse_m'] * 1000:.1f} mm, orientations {tracking['rotation_rmse_deg']:.2f} deg "
             "RMSE") in capsys.readouterr().out
