@@ -137,7 +137,8 @@ def _project(normals: wp.array(dtype=wp.vec3), dirs: wp.array(dtype=wp.vec3), yt
     k0 = g * group
     k1 = wp.min(k0 + group, ytab.shape[1])
     n = normals[i]
-    acc = _Coeffs()
+    acc = _Coeffs()    # a group's sums (a group of one keeps its sum in `one`: no local array read on a GPU)
+    one = float(0.0)
     n_hemi = int(0)
     n_vis = int(0)
     for d in range(dirs.shape[0]):
@@ -146,10 +147,16 @@ def _project(normals: wp.array(dtype=wp.vec3), dirs: wp.array(dtype=wp.vec3), yt
             n_hemi += 1
             if (int(occ[i, d]) & mask) == 0:
                 n_vis += 1
-                for k in range(k0, k1):
-                    acc[k - k0] = acc[k - k0] + c * ytab[d, k]
-    for k in range(k0, k1):
-        transfer[i, k] = acc[k - k0] * scale
+                if group == 1:
+                    one += c * ytab[d, k0]
+                else:
+                    for k in range(k0, k1):
+                        acc[k - k0] = acc[k - k0] + c * ytab[d, k]
+    if group == 1:
+        transfer[i, k0] = one * scale
+    else:
+        for k in range(k0, k1):
+            transfer[i, k] = acc[k - k0] * scale
     if g == 0:
         frac = float(0.0)
         if n_hemi > 0:
