@@ -391,6 +391,12 @@ def _frame_error(root: Path, i: int = 1) -> Exception:
 def test_index_errors_name_file_and_line(tmp_path, case):
     write_native(tmp_path)
     rgb, gt, js = tmp_path / "rgb.txt", tmp_path / "groundtruth.txt", tmp_path / "intrinsics.json"
+    txt = tmp_path / "intrinsics.txt"
+
+    def intrinsics_txt(text: str) -> None:
+        """The calibration as intrinsics.txt alone."""
+        js.unlink()
+        txt.write_text(text)
     if case == "missing depth.txt":
         (tmp_path / "depth.txt").unlink()
         where = str(tmp_path / "depth.txt")
@@ -431,9 +437,7 @@ def test_index_errors_name_file_and_line(tmp_path, case):
                                                                            if not ln.startswith("#"))))
         where = f"{tmp_path}: no colour frame of rgb.txt"
     elif case == "intrinsics.txt key twice":
-        js.unlink()
-        txt = tmp_path / "intrinsics.txt"
-        txt.write_text("fx 10\nfy 11\ncx 3.5\ncy 2.5\nfx 12\n")
+        intrinsics_txt("fx 10\nfy 11\ncx 3.5\ncy 2.5\nfx 12\n")
         where = f"{txt}:5: fx given again (first on line 1)"
     elif case == "intrinsics.json missing key":
         js.write_text('{"width": 8, "height": 6, "fx": 10, "fy": 10, "cx": 3.5}')
@@ -448,14 +452,10 @@ def test_index_errors_name_file_and_line(tmp_path, case):
         js.write_text(json.dumps({**json.loads(js.read_text()), "depthscale": 1000}))
         where = f"{js}: unknown key(s) 'depthscale'"
     elif case == "intrinsics.txt bad shutter":
-        js.unlink()
-        txt = tmp_path / "intrinsics.txt"
-        txt.write_text("fx 10\nfy 11\ncx 3.5\ncy 2.5\nshutter -0.01\n")
+        intrinsics_txt("fx 10\nfy 11\ncx 3.5\ncy 2.5\nshutter -0.01\n")
         where = f"{txt}:5: shutter must be seconds in 0..1"
     else:
-        js.unlink()
-        txt = tmp_path / "intrinsics.txt"
-        txt.write_text("# calibration\nfx 10\nfy 11\ncx 3.5\ncy 2.5\nfocal 3\n")
+        intrinsics_txt("# calibration\nfx 10\nfy 11\ncx 3.5\ncy 2.5\nfocal 3\n")
         where = f"{txt}:6"
     assert where in str(_open_error(tmp_path))
 
