@@ -192,7 +192,8 @@ class Pipeline:
 
             def agrees(idx: np.ndarray) -> np.ndarray:
                 return (flags[idx] & AGREES) > 0
-        centre = np.count_nonzero(prep.usable[::st, ::st] & maps.valid)
+        fit = (prep.usable | prep.clipped) if lc.censored else prep.usable   # the pixels a box may hold
+        centre = np.count_nonzero(fit[::st, ::st] & maps.valid)
         lost = 1.0 - cand.size / centre if centre else 0.0
         cap = self.solver_cfg.max_samples if cap is None else cap
         rng = np.random.default_rng(self.solver_cfg.seed)

@@ -309,7 +309,8 @@ def print_summary(summary: dict, out: str) -> None:
         print(f"tracked {tr['frames']} frames, {failed} failed, {tr['unconfirmed']} unconfirmed{against_recorded(tr)}")
     print(f"mean ms per stage: {stages}  (total {t.get('total', 0):.1f})")
     written = [n for n in ("lighting.jsonl", "summary.json", "envmap/", "sphere/", "composite/", "composite_linear/",
-                           "lightmap/", "composite.mp4", "trajectory.txt") if (Path(out) / n).exists()]
+                           "lightmap/", "composite.mp4", "trajectory.txt")   # a folder an earlier run left emptied: not
+               if (Path(out) / n).is_file() or (Path(out) / n).is_dir() and any((Path(out) / n).iterdir())]
     print(f"outputs in {out}: {', '.join(written)}")
 
 

@@ -308,9 +308,11 @@ def test_cli_names_the_file_it_cannot_write(tmp_path, capsys):
 
 def test_run_names_the_outputs_it_wrote(tmp_path, capsys):
     """The run's last line lists what is in its folder: no envmap/ or sphere/ with pictures_every = 0, no composites
-    without objects."""
+    without objects (nor the folder an earlier run's composites left, emptied)."""
     from photoreg.cli import main
 
+    (tmp_path / "o" / "composite").mkdir(parents=True)
+    (tmp_path / "o" / "composite" / "000000.png").write_bytes(b"an earlier run's")
     session = tmp_path / "s.toml"
     session.write_text(f'[recording]\npath = "{(REPO / "data" / "demo").as_posix()}"\n[output]\npictures_every = 0\n')
     assert main(["run", str(session), "--out", str(tmp_path / "o"), "--frames", "0:1", "--rays", "8", "--bands", "1",

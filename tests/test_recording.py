@@ -386,7 +386,8 @@ def _frame_error(root: Path, i: int = 1) -> Exception:
     "missing depth.txt", "unsorted rgb.txt", "malformed rgb.txt", "bad timestamp", "non-finite pose",
     "non-unit quaternion", "broken intrinsics.json", "intrinsics.json missing key", "intrinsics.txt unknown key",
     "intrinsics.json bad shutter", "intrinsics.txt bad shutter", "intrinsics.json unknown key",
-    "intrinsics.json bad dist", "normalised focal length", "principal point outside", "pose beyond reach", "intrinsics.txt key twice", "colour and depth never pair",
+    "intrinsics.json bad dist", "normalised focal length", "principal point outside",
+    "intrinsics.txt of a larger camera without its size", "pose beyond reach", "intrinsics.txt key twice", "colour and depth never pair",
 ])
 def test_index_errors_name_file_and_line(tmp_path, case):
     write_native(tmp_path)
@@ -426,6 +427,9 @@ def test_index_errors_name_file_and_line(tmp_path, case):
     elif case == "principal point outside":
         js.write_text(json.dumps({**json.loads(js.read_text()), "cy": 1e7}))
         where = f"{js}: cy = 10000000.0 lies far outside the 8x6 image"
+    elif case == "intrinsics.txt of a larger camera without its size":
+        intrinsics_txt("fx 3000\nfy 3000\ncx 72016\ncy 1512\n")
+        where = f"{txt} (size 640x480 assumed: give width and height): cx = 72016.0 lies far outside the 640x480 image"
     elif case == "pose beyond reach":
         first = gt.read_text().splitlines()[3]
         _replace(gt, first, first.split()[0] + " 1e12 0 0 0 0 0 1")
@@ -481,18 +485,30 @@ def test_what_the_reader_assumed_is_said(tmp_path):
 
 def test_a_jpeg_cut_short_is_an_error_naming_it(tmp_path):
     """A JPEG cut short (a copy interrupted) is refused, naming the file, where OpenCV would decode it with its
-    missing rows grey; one with data after its end (as some cameras write) is read; over the socket the same."""
-    from photoreg.io.images import read_rgb
+    missing rows grey; whole ones are read whatever they hold or have after them (progressive scans, restart markers,
+    an EXIF thumbnail, appended binary data with marker-like bytes, as a phone's motion photo); over the socket the
+    same."""
+    from photoreg.io.images import jpeg_cut_short, read_rgb
     from photoreg.service.protocol import ProtocolError, _decode_color
 
-    img = np.random.default_rng(0).integers(0, 255, (48, 64, 3), np.uint8)
+    rng = np.random.default_rng(0)
+    img = rng.integers(0, 255, (48, 64, 3), np.uint8)
     data = cv2.imencode(".jpg", img)[1].tobytes()
-    whole, cut, extra = tmp_path / "whole.jpg", tmp_path / "cut.jpg", tmp_path / "extra.jpg"
-    whole.write_bytes(data)
+    thumb = cv2.imencode(".jpg", img[::4, ::4])[1].tobytes()
+    exif = b"\xff\xe1" + (len(thumb) + 8).to_bytes(2, "big") + b"Exif\x00\x00" + thumb
+    whole = {"plain": data, "progressive": cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_PROGRESSIVE, 1])[1].tobytes(),
+             "restarts": cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_RST_INTERVAL, 2])[1].tobytes(),
+             "thumbnail": data[:2] + exif + data[2:], "appended": data + b"\x00\xff\xda\x00" + rng.bytes(4096)}
+    for name, jpeg in whole.items():
+        assert not jpeg_cut_short(jpeg), name
+        image = jpeg if name != "appended" else data
+        assert all(jpeg_cut_short(image[:n]) for n in (len(image) // 10, len(image) // 2, len(image) - 2)), name
+    cut, extra = tmp_path / "cut.jpg", tmp_path / "extra.jpg"
+    (tmp_path / "whole.jpg").write_bytes(data)
     cut.write_bytes(data[:len(data) // 2])
-    extra.write_bytes(data + b"\x00" * 64 + b"trailer")
+    extra.write_bytes(whole["appended"])
     assert cv2.imread(str(cut)) is not None                # what OpenCV alone would take
-    assert np.array_equal(read_rgb(whole), read_rgb(extra))
+    assert np.array_equal(read_rgb(tmp_path / "whole.jpg"), read_rgb(extra))
     with pytest.raises(ValueError, match=re.escape(f"{cut}: JPEG data cut short")):
         read_rgb(cut)
     intr = Intrinsics(64, 48, 50.0, 50.0, 31.5, 23.5)

@@ -652,16 +652,25 @@ def test_render_window_holds_the_object_and_its_seam(tmp_path):
 
 def test_camera_inside_an_object_is_said(tmp_path):
     """An object placed round the camera (a scale or position mistake) is drawn from within: the frame's notes say
-    which object; a camera in an object's box but outside its surface (a torus's hole) is not flagged."""
+    which object; a camera in an object's box but outside its surface (a torus's hole) is not flagged; an open mesh
+    (a box without its lid, as a teapot's rim) and overlapping parts hold what they enclose."""
     from photoreg.config import Session
     from photoreg.render.stage import RenderStage
 
-    torus = tmp_path / "torus.obj"
+    torus, lidless, two = tmp_path / "torus.obj", tmp_path / "lidless.obj", tmp_path / "two.obj"
     trimesh.creation.torus(major_radius=0.5, minor_radius=0.1).export(torus)
-    scene = load_scene([_cube(tmp_path, scale=0.2), ObjectConfig(mesh=str(torus), position=[2.0, 0, 0])])
+    box = trimesh.creation.box(extents=(1, 1, 1))
+    box.update_faces(box.face_normals[:, 2] < 0.5)                 # the top's two triangles gone
+    box.export(lidless)
+    trimesh.util.concatenate([trimesh.creation.icosphere(radius=0.5),
+                              trimesh.creation.icosphere(radius=0.5).apply_translation([0.4, 0, 0])]).export(two)
+    scene = load_scene([_cube(tmp_path, scale=0.2), ObjectConfig(mesh=str(torus), position=[2.0, 0, 0]),
+                        ObjectConfig(mesh=str(lidless), position=[0, 3.0, 0]), ObjectConfig(mesh=str(two),
+                                                                                         position=[0, -3.0, 0])])
     assert scene.containing([0.0, 0.05, 0.02]) == [0]
     assert scene.containing([2.0, 0.0, 0.0]) == [] and scene.containing([2.5, 0.0, 0.0]) == [1]
     assert scene.containing([0.0, 0.0, 1.0]) == []
+    assert scene.containing([0.0, 3.0, 0.0]) == [2] and scene.containing([0.2, -3.0, 0.0]) == [3]
     s = Session()
     s.objects = [_cube(tmp_path, scale=3.0)]
     s.lighting.stride, s.lighting.rays = 4, 16

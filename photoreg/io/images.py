@@ -64,13 +64,45 @@ def linear_to_srgb(img: np.ndarray) -> np.ndarray:
 
 
 def jpeg_cut_short(data: bytes) -> bool:
-    """Whether JPEG data stop inside their last scan (no end-of-image marker after the last start-of-scan): a file
-    cut short, which OpenCV decodes with the missing rows grey and only a warning on stderr. Markers cannot occur
-    inside the entropy-coded data (0xFF is stuffed), so the last 0xFFDA is the last scan's whatever comes after
-    the image (some cameras append data) or before it (an EXIF thumbnail)."""
+    """Whether JPEG data end before their end-of-image marker: a file cut short, which OpenCV decodes with the
+    missing rows grey and only a warning on stderr. Walks the segments from the start (each skipped by its length,
+    an EXIF thumbnail with them) and each scan's entropy-coded data to the next marker (stuffed 0xFF00 and restart
+    markers are data), so whatever follows the image (some cameras append a video) is never read. Data that are no
+    JPEG's structure are left to the decoder (False)."""
+    n = len(data)
     if data[:2] != b"\xff\xd8":
         return False
-    return data.rfind(b"\xff\xd9") < data.rfind(b"\xff\xda")
+    i = 2
+    while True:
+        if i >= n:
+            return True
+        if data[i] != 0xFF:
+            return False
+        while i < n and data[i] == 0xFF:   # fill bytes before a marker
+            i += 1
+        if i >= n:
+            return True
+        marker = data[i]
+        i += 1
+        if marker == 0xD9:                 # end of image
+            return False
+        if marker == 0x01 or 0xD0 <= marker <= 0xD7:
+            continue
+        if i + 2 > n:
+            return True
+        i += (data[i] << 8) | data[i + 1]  # the segment's length counts its own two bytes
+        if i > n:
+            return True
+        if marker == 0xDA:                 # a scan: its entropy-coded data run to the next real marker
+            while True:
+                j = data.find(b"\xff", i)
+                if j < 0 or j + 1 >= n:
+                    return True
+                if data[j + 1] == 0x00 or 0xD0 <= data[j + 1] <= 0xD7:
+                    i = j + 2
+                    continue
+                i = j
+                break
 
 
 def _imread(path: str | os.PathLike, flags: int, what: str) -> np.ndarray:

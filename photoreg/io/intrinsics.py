@@ -45,9 +45,9 @@ def checked_intrinsics(values: dict, where: str) -> Intrinsics:
         if values[f] < 1:
             raise ValueError(f"{where}: {f} = {values[f]} is under a pixel: focal lengths are in pixels (normalised "
                              f"ones times the image size)")
-        if not -size <= values[c] <= 2 * size:
-            raise ValueError(f"{where}: {c} = {values[c]} lies far outside the {w}x{h} image: the principal point "
-                             "is in pixels")
+        if abs(values[c] - size / 2) > 10 * size:   # a crop far from the centre keeps it within a few sizes
+            raise ValueError(f"{where}: {c} = {values[c]} lies far outside the {w:g}x{h:g} image: the principal "
+                             "point is in pixels")
     return Intrinsics(int(w), int(h), float(values["fx"]), float(values["fy"]),
                       float(values["cx"]), float(values["cy"]), float(values["depth_scale"]))
 
@@ -119,7 +119,9 @@ def read_intrinsics_txt(path: Path, depth_scale: float) -> Calibration:
         raise ValueError(f"{path}: missing {', '.join(missing)}")
     if distortion is not None and not np.all(np.isfinite(distortion)):
         raise ValueError(f"{path}: distortion coefficients must be finite")
-    return Calibration(checked_intrinsics(values, str(path)), distortion,
+    sized = "width" in seen and "height" in seen
+    where = str(path) if sized else f"{path} (size {VGA[0]}x{VGA[1]} assumed: give width and height)"
+    return Calibration(checked_intrinsics(values, where), distortion,
                        _scale_source(path, "depth_scale" in seen, depth_scale), shutter)
 
 

@@ -125,7 +125,7 @@ def open_tum(path: Path, native: bool, undistort: bool) -> Recording:
         if len(gt_times) == 1:
             notes.append(f"groundtruth.txt holds one pose: the frames within {MAX_GAP} s of it take it, the others "
                          "have none")
-        elif all(T is None for T in poses):
+        if all(T is None for T in poses):
             warnings.append(f"groundtruth.txt gives no frame a pose: no colour frame time ({times[0]:.6f} .. "
                             f"{times[-1]:.6f}) lies between two of its poses ({gt_times[0]:.6f} .. "
                             f"{gt_times[-1]:.6f}) at most {MAX_GAP} s apart (timestamps are seconds)")

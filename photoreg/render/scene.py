@@ -75,7 +75,6 @@ class FaceAttributes:
 @dataclass
 class VirtualScene:
     objects: list[VirtualObject]
-    _occupancy: dict = field(default_factory=dict, repr=False)   # containing()'s query scenes by object index
 
     @cached_property
     def boxes(self) -> np.ndarray:
@@ -93,23 +92,21 @@ class VirtualScene:
         return box
 
     def containing(self, point: np.ndarray) -> list[int]:
-        """Indices of the objects whose closed surface holds the world `point` (the camera inside an object sees it
-        from within: the render stage says so). A box test first, Open3D's occupancy (ray parity) for those it
-        passes; each object's query scene made once."""
-        import open3d as o3d
-
+        """Indices of the objects that hold the world `point` (the camera inside an object sees it from within: the
+        render stage says so): a box test, then the generalised winding number of the object's triangles about the
+        point (solid angles summed, Van Oosterom-Strackee), |w| > 1/2, which open meshes (a teapot's rim) and
+        overlapping parts hold too where ray parity does not."""
         point = np.asarray(point, np.float64)
         inside = []
         for k, o in enumerate(self.objects):
             if np.any(point < self.boxes[k, 0]) or np.any(point > self.boxes[k, 1]):
                 continue
-            if k not in self._occupancy:
-                rs = o3d.t.geometry.RaycastingScene()
-                rs.add_triangles(o3d.core.Tensor(o.vertices.astype(np.float32)),
-                                 o3d.core.Tensor(o.faces.astype(np.uint32)))
-                self._occupancy[k] = rs
-            q = o3d.core.Tensor(point[None].astype(np.float32))
-            if self._occupancy[k].compute_occupancy(q, nsamples=3).numpy()[0] > 0.5:
+            a, b, c = (o.vertices[o.faces[:, j]] - point for j in range(3))
+            la, lb, lc = (np.linalg.norm(x, axis=1) for x in (a, b, c))
+            det = np.einsum("ij,ij->i", a, np.cross(b, c))
+            den = (la * lb * lc + np.einsum("ij,ij->i", a, b) * lc + np.einsum("ij,ij->i", b, c) * la
+                   + np.einsum("ij,ij->i", c, a) * lb)
+            if abs(np.arctan2(det, den).sum() / (2 * np.pi)) > 0.5:
                 inside.append(k)
         return inside
 
