@@ -470,10 +470,8 @@ class Pipeline:
                 # prepare zeroed the depth below rc.depth_min: clean for a volume that drops no more (a shared one
                 # may), unless the bilateral filter (which may dip just below it) ran
                 restarts = self.volume.restarts
-                # a recorded depth image is fused from its own time's pose, where the recording gives one
-                fused_from = frame.depth_pose if self.tracker is None and frame.depth_pose is not None else pose
                 try:
-                    self.volume.integrate(prep.depth, self.intrinsics, fused_from,
+                    self.volume.integrate(prep.depth, self.intrinsics, pose,
                                           clean=rc.depth_min >= self.volume.cfg.depth_min and not rc.depth_filter_px)
                 except VolumeLimitError as e:   # a wrong pose, as a rule: the frame counts as one without a pose
                     pose, notes = None, [*notes, f"frame {frame.index}: {e}"]

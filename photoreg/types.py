@@ -64,9 +64,6 @@ class Frame:
     depth_native: np.ndarray | None = None
     shutter: float | None = None    # seconds the shutter was open, where the camera says (the recording's
                                     # calibration, a streamed frame's `shutter`): the objects' motion blur
-    # 4x4 camera-to-world when the depth was captured, where the recording says it differs from `pose` (TUM: depth
-    # up to 20 ms from its colour frame, a camera turning 80 degrees/s turned 1.6 degrees meanwhile); fusion uses it
-    depth_pose: np.ndarray | None = None
 
 
 @dataclass

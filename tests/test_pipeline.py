@@ -10,7 +10,6 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-from scipy.spatial.transform import Rotation
 
 import photoreg.pipeline as pipeline_module
 from photoreg.cli import main
@@ -89,36 +88,6 @@ def test_session_overrides_and_bad_options(tmp_path, capsys):
     upper.write_text(demo)
     assert main(["run", str(upper), "--frames", "0:1", "--rays", "8", "--bands", "1", "--out", str(tmp_path / "o"),
                  "--quiet"]) == 0
-
-
-def test_depth_is_fused_from_its_own_pose():
-    """A frame whose depth was captured from elsewhere than its colour (Frame.depth_pose: TUM's depth up to 20 ms from
-    its colour, the camera turning meanwhile) is fused from the depth's pose: the fused surface is where the depth
-    saw it, where fusing from the colour's pose puts it turned by the 3 degrees the camera turned between."""
-    from scenes import look_at, render
-
-    from photoreg.kernels.raycast import raycast_surface
-    from photoreg.types import Frame
-
-    k = Intrinsics(96, 72, 84.0, 84.0, 47.5, 35.5, 5000.0)
-    at_depth = look_at(np.array([0.0, -1.2, 0.8]), np.array([0.0, 0.0, 0.1]))
-    at_colour = at_depth.copy()                          # turned 3 degrees about its own x axis (a nod)
-    at_colour[:3, :3] = at_depth[:3, :3] @ Rotation.from_euler("x", 3, degrees=True).as_matrix()
-    colour, _ = render(k, at_colour)
-    _, depth = render(k, at_depth)
-    errors = {}
-    for depth_pose in (at_depth, None):
-        s = Session(device="cpu")
-        s.lighting.rays, s.lighting.bands, s.lighting.stride = 16, 2, 4
-        pipe = pipeline_module.Pipeline(s, k)
-        try:
-            pipe.process(Frame(0, 0.0, colour, depth, k, at_colour, depth_pose=depth_pose))
-            maps = raycast_surface(pipe.volume.dense_grid(), k, at_depth, 0.1, 5.0, stride=1)
-        finally:
-            pipe.close()
-        ok = maps.valid & (depth > 0)
-        errors[depth_pose is None] = float(np.median(np.abs(maps.depth[ok] - depth[ok])))
-    assert errors[False] < 0.002 < 0.02 < errors[True], errors
 
 
 def test_frame_selection_and_its_override(tmp_path):

@@ -25,7 +25,6 @@ import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
-from scipy.spatial.transform import Rotation
 from websockets.exceptions import ConnectionClosed
 from websockets.sync.client import connect as ws_connect
 
@@ -79,22 +78,6 @@ def test_frame_encodings_round_trip(recording):
                 assert np.abs(got.color.astype(int) - frame.color).mean() < 3
             else:
                 np.testing.assert_array_equal(got.color, frame.color)
-
-
-def test_a_frame_s_depth_pose_travels_with_it(recording):
-    """frame.depth_pose (optional): where the depth was captured from, as `photoreg run` fuses a TUM frame's depth, is
-    sent and decoded; absent it is None; not a rigid 4x4 it is a bad_field naming it."""
-    frame = first_frame(recording)
-    turned = frame.pose.copy()
-    turned[:3, :3] = turned[:3, :3] @ Rotation.from_euler("x", 2, degrees=True).as_matrix()
-    header, payload = decode(encode_frame(dataclasses.replace(frame, depth_pose=turned)))
-    np.testing.assert_array_equal(decode_frame(header, payload, K, default_index=0).depth_pose, turned)
-    header, payload = decode(encode_frame(frame))
-    assert "depth_pose" not in header and decode_frame(header, payload, K, default_index=0).depth_pose is None
-    for bad in ([[1, 0], [0, 1]], np.diag([2.0, 1, 1, 1]).tolist(), "here"):
-        with pytest.raises(ProtocolError, match="frame.depth_pose") as e:
-            decode_frame({**header, "depth_pose": bad}, payload, K, default_index=0)
-        assert e.value.code == "bad_field"
 
 
 def test_a_frame_s_shutter_time_travels_with_it(recording):

@@ -46,14 +46,10 @@ class Recording:
     # within 0.02 s), which the frame indices then skip
     warnings: list[str] = field(default_factory=list)
     shutter: float | None = None          # seconds the shutter is open for each frame, when the calibration says
-    # camera-to-world per frame at its depth image's own time, where the layout times it apart from the colour (TUM);
-    # None: the colour's poses serve
-    depth_poses: list[np.ndarray | None] | None = None
 
     def __post_init__(self) -> None:
         n = len(self.color_files)
-        if len(self.depth_files) != n or len(self.timestamps) != n or any(
-                p is not None and len(p) != n for p in (self.poses, self.depth_poses)):
+        if len(self.depth_files) != n or len(self.timestamps) != n or (self.poses is not None and len(self.poses) != n):
             raise ValueError(f"{self.path}: inconsistent frame lists")  # a reader bug, not bad input
         if self.undistort and self.distortion is None:
             raise ValueError(f"{self.path}: no distortion coefficients known for this {self.format} recording; "
@@ -91,11 +87,10 @@ class Recording:
             color = cv2.remap(color, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
             raw = cv2.remap(raw, mx, my, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT)
         pose = None if self.poses is None or self.poses[i] is None else self.poses[i].copy()
-        depth_pose = None if self.depth_poses is None or self.depth_poses[i] is None else self.depth_poses[i].copy()
         return Frame(index=i, timestamp=float(self.timestamps[i]), color=color, depth=self._metres(raw),
                      intrinsics=self.intrinsics, pose=pose, source=str(cpath),
                      depth_native=None if native is raw or self.undistort else self._metres(native),
-                     shutter=self.shutter, depth_pose=depth_pose)
+                     shutter=self.shutter)
 
     def _metres(self, raw: np.ndarray) -> np.ndarray:
         """A depth file's values in float32 metres, 0 where they mean no measurement."""

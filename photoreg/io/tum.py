@@ -93,7 +93,6 @@ def open_tum(path: Path, native: bool, undistort: bool) -> Recording:
         times, rows = read_timestamped(path / "associations.txt", 4)
         colors = [path / r[1] for r in rows]
         depths = [path / r[3] for r in rows]
-        dtimes = np.array([float(r[2]) for r in rows])
         notes.append("frames from associations.txt")
     else:
         rgb_times, rgb_rows = read_timestamped(path / "rgb.txt", 2)
@@ -110,18 +109,14 @@ def open_tum(path: Path, native: bool, undistort: bool) -> Recording:
                             f"within {MAX_DIFFERENCE} s and are left out (the first: {rgb_rows[first][1]}); frame "
                             "indices count the frames kept")
         times = rgb_times[[i for i, _ in pairs]]
-        dtimes = depth_times[[j for _, j in pairs]]
         colors = [path / rgb_rows[i][1] for i, _ in pairs]
         depths = [path / depth_rows[j][1] for _, j in pairs]
 
-    poses = depth_poses = None
+    poses = None
     if (path / "groundtruth.txt").is_file():
         gt_times, gt_poses = read_tum_trajectory(path / "groundtruth.txt")
         poses = interpolate_poses(gt_times, gt_poses, times)
         notes.append("poses from groundtruth.txt, interpolated to the colour frame times")
-        if np.any(dtimes != times):   # the depth fused from where the camera was when it was captured
-            depth_poses = interpolate_poses(gt_times, gt_poses, dtimes)
-            notes.append("the depth images fused from poses interpolated to their own times")
         if len(gt_times) == 1:
             notes.append(f"groundtruth.txt holds one pose: the frames within {MAX_GAP} s of it take it, the others "
                          "have none")
@@ -130,6 +125,6 @@ def open_tum(path: Path, native: bool, undistort: bool) -> Recording:
                             f"{times[-1]:.6f}) lies between two of its poses ({gt_times[0]:.6f} .. "
                             f"{gt_times[-1]:.6f}) at most {MAX_GAP} s apart (timestamps are seconds)")
     return Recording(path=path, format="native" if native else "tum", intrinsics=calib.intrinsics,
-                     timestamps=times, color_files=colors, depth_files=depths, poses=poses, depth_poses=depth_poses,
+                     timestamps=times, color_files=colors, depth_files=depths, poses=poses,
                      distortion=calib.distortion, undistort=undistort, notes=notes, warnings=warnings,
                      shutter=calib.shutter)

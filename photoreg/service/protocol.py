@@ -252,8 +252,6 @@ def encode_frame(frame: Frame, index: int | None = None, color: str = "png", dep
         header["depth"].update(width=metres.shape[1], height=metres.shape[0])
     if frame.shutter is not None:
         header["shutter"] = float(frame.shutter)
-    if frame.depth_pose is not None:
-        header["depth_pose"] = np.asarray(frame.depth_pose, dtype=np.float64).tolist()
     return encode(header, cbytes + dbytes)
 
 
@@ -527,7 +525,16 @@ def decode_frame(header: dict, payload: memoryview, intr: Intrinsics, default_in
         shutter = header.get("shutter")
         if shutter is not None and not 0 <= _number(shutter, "frame.shutter") <= 1:
             raise ProtocolError("bad_field", f"frame.shutter must be seconds in 0..1, got {shutter!r:.80}")
-        pose, depth_pose = (_pose_field(header, key) for key in ("pose", "depth_pose"))
+        pose = header.get("pose")
+        if pose is not None:
+            try:
+                arr = np.array(pose, dtype=np.float64)
+            except (ValueError, TypeError, OverflowError):
+                raise ProtocolError("bad_field", "frame.pose must be a 4x4 array of numbers or null") from None
+            try:
+                pose = check_pose(arr, "frame.pose")
+            except ValueError as e:
+                raise ProtocolError("bad_field", str(e)) from None
         cenc, cdata = _payload(_get(header, "color", "frame"), "color", payload, COLOR_ENCODINGS)
         dspec = _get(header, "depth", "frame")
         denc, ddata = _payload(dspec, "depth", payload, DEPTH_ENCODINGS)
@@ -537,20 +544,4 @@ def decode_frame(header: dict, payload: memoryview, intr: Intrinsics, default_in
         e.frame = index
         raise
     return Frame(index=index, timestamp=timestamp, color=color, depth=depth, intrinsics=intr, pose=pose,
-                 source=f"frame message {index}", shutter=None if shutter is None else float(shutter),
-                 depth_pose=depth_pose)
-
-
-def _pose_field(header: dict, key: str) -> np.ndarray | None:
-    """frame.`key`: a checked rigid 4x4 camera-to-world, or None where absent or null."""
-    pose = header.get(key)
-    if pose is None:
-        return None
-    try:
-        arr = np.array(pose, dtype=np.float64)
-    except (ValueError, TypeError, OverflowError):
-        raise ProtocolError("bad_field", f"frame.{key} must be a 4x4 array of numbers or null") from None
-    try:
-        return check_pose(arr, f"frame.{key}")
-    except ValueError as e:
-        raise ProtocolError("bad_field", str(e)) from None
+                 source=f"frame message {index}", shutter=None if shutter is None else float(shutter))
