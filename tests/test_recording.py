@@ -382,7 +382,8 @@ def _frame_error(root: Path, i: int = 1) -> Exception:
     "non-unit quaternion", "broken intrinsics.json", "intrinsics.json missing key", "intrinsics.txt unknown key",
     "intrinsics.json bad shutter", "intrinsics.txt bad shutter", "intrinsics.json unknown key",
     "intrinsics.json bad dist", "normalised focal length", "principal point outside",
-    "intrinsics.txt of a larger camera without its size", "pose beyond reach", "intrinsics.txt key twice", "colour and depth never pair",
+    "intrinsics.txt of a larger camera without its size", "pose beyond reach", "intrinsics.txt key twice",
+    "colour and depth never pair",
 ])
 def test_index_errors_name_file_and_line(tmp_path, case):
     write_native(tmp_path)
