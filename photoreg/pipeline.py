@@ -192,8 +192,10 @@ class Pipeline:
 
             def agrees(idx: np.ndarray) -> np.ndarray:
                 return (flags[idx] & AGREES) > 0
-        fit = (prep.usable | prep.clipped) if lc.censored else prep.usable   # the pixels a box may hold
-        centre = np.count_nonzero(fit[::st, ::st] & maps.valid)
+        centre = prep.usable[::st, ::st] & maps.valid   # the sample pixels a box may keep (strided: no full-frame pass)
+        if lc.censored:
+            centre |= prep.clipped[::st, ::st] & maps.valid
+        centre = np.count_nonzero(centre)
         lost = 1.0 - cand.size / centre if centre else 0.0
         cap = self.solver_cfg.max_samples if cap is None else cap
         rng = np.random.default_rng(self.solver_cfg.seed)

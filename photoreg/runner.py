@@ -308,10 +308,13 @@ def print_summary(summary: dict, out: str) -> None:
         failed = len(tr["failures"]) + tr.get("failures_not_listed", 0)
         print(f"tracked {tr['frames']} frames, {failed} failed, {tr['unconfirmed']} unconfirmed{against_recorded(tr)}")
     print(f"mean ms per stage: {stages}  (total {t.get('total', 0):.1f})")
-    written = [n for n in ("lighting.jsonl", "summary.json", "envmap/", "sphere/", "composite/", "composite_linear/",
-                           "lightmap/", "composite.mp4", "trajectory.txt")   # a folder an earlier run left emptied: not
-               if (Path(out) / n).is_file() or (Path(out) / n).is_dir() and any((Path(out) / n).iterdir())]
-    print(f"outputs in {out}: {', '.join(written)}")
+    def written(name: str) -> bool:   # a folder an earlier run's files were cleared from is not this run's output
+        p = Path(out) / name
+        return p.is_file() or p.is_dir() and any(p.iterdir())
+
+    names = ("lighting.jsonl", "summary.json", "envmap/", "sphere/", "composite/", "composite_linear/", "lightmap/",
+             "composite.mp4", "trajectory.txt")
+    print(f"outputs in {out}: {', '.join(n for n in names if written(n))}")
 
 
 def run_command(args) -> int:
