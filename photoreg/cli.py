@@ -9,6 +9,7 @@ import sys
 
 from photoreg.config import GBUFFER_BACKENDS, SHADOW_RENDERERS
 from photoreg.device import open3d_message
+from photoreg.render.neural_soft_weights import AXES
 
 # subcommand -> "module:function"; the function takes the parsed argparse.Namespace and returns an exit code.
 HANDLERS = {
@@ -235,6 +236,10 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--out", help="write weights here (default: the cache, $PHOTOREG_CACHE or ~/.cache/photoreg, "
                                  "where runs look, as in data/weights/neural_soft; a run does not read --out's folder)")
     t.add_argument("--force", action="store_true", help="train even when weights are cached")
+    t.add_argument("--up", choices=("auto",) + AXES, default="auto",
+                   help="the side of each mesh it stands on, by the axis of the mesh's own frame that points up (a run "
+                        "takes the side whose plane the real surface under the object fills, and its frames' notes "
+                        "say which); auto: the axis the session's rotation turns nearest to the world's +z")
 
     p = sub.add_parser("batch", help="run many session files, each into its own output folder (local workers or Ray)")
     p.add_argument("sessions", nargs="+", help="session files (sessions/*.toml); their keys, values, recordings "

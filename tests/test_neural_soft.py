@@ -16,9 +16,9 @@ from photoreg.kernels.transfer import make_direction_set
 from photoreg.lighting.parametric import lobe_sh
 from photoreg.render.composite import RenderInput, composite
 from photoreg.render.gbuffer import GBufferRenderer
-from photoreg.render.neural_soft import object_net
-from photoreg.render.neural_soft_weights import (COMMITTED_DIR, NeuralSoftSettings, load_weights, mesh_sha256,
-                                                 weights_key)
+from photoreg.render.neural_soft import object_net, plane_visibility, support_axis
+from photoreg.render.neural_soft_weights import (AXES, COMMITTED_DIR, NeuralSoftSettings, axis_vector, load_weights,
+                                                 mesh_sha256, standing_rotation, weights_key)
 from photoreg.render.registry import get_renderer
 from photoreg.render.scene import load_scene, sdf_grid, voxel_grid
 from photoreg.render.shadow_mlp import predict
@@ -79,7 +79,7 @@ def test_cache_hit_loads_without_training(tmp_path, monkeypatch, capsys):
     assert path == cache / "neural_soft" / f"{weights_key(mesh, tiny)}.npz"
     before = path.stat().st_mtime_ns
     capsys.readouterr()
-    net, frame = object_net(obj, tiny)
+    net, frame = object_net(obj, axis_vector("+z"), tiny)
     assert path.stat().st_mtime_ns == before and sorted(p.name for p in path.parent.iterdir()) == [path.name]
     assert "training" not in capsys.readouterr().err
     assert net.n_params == load_weights(path)[0].n_params and math.isclose(frame.side, 3.0)
@@ -99,6 +99,22 @@ def test_committed_demo_weights_match_the_demo_mesh():
     assert vis[0] < 0.05 and vis[1] > 0.95
 
 
+def test_committed_bunny_weights_serve_the_tum_session(data_dir, tmp_path, monkeypatch, capsys):
+    """The shipped TUM session's bunny (a y-up mesh stood up by its rotation) has committed weights for its +y side,
+    which `photoreg train` finds (auto: the axis its rotation turns nearest to the world's +z), training nothing."""
+    from photoreg.cli import main
+
+    bunny = data_dir / "meshes" / "bunny_5k.obj"
+    path = COMMITTED_DIR / f"{weights_key(bunny, NeuralSoftSettings(), axis_vector('+y'))}.npz"
+    assert path.is_file(), f"{path}: committed weights of {bunny} on its +y side missing"
+    net, meta = load_weights(path)
+    assert meta["mesh_sha256"] == mesh_sha256(bunny) and meta["up"] == [0.0, 1.0, 0.0] and meta["rmse_held_out"] < 0.05
+    monkeypatch.setenv("PHOTOREG_CACHE", str(tmp_path / "cache"))
+    monkeypatch.setenv("PHOTOREG_DATA", str(data_dir))
+    assert main(["train", "neural_soft", str(REPO / "sessions" / "tum_fr1_rpy.toml")]) == 0
+    assert f"weights at {path}" in capsys.readouterr().out and not (tmp_path / "cache").exists()
+
+
 def _floor_grid(voxel=0.02, trunc=0.08):
     """Real geometry: the plane z = 0 over [-0.64, 0.64]^2."""
     origin = np.array([-0.64, -0.64, -0.32])
@@ -106,22 +122,29 @@ def _floor_grid(voxel=0.02, trunc=0.08):
     return sdf_grid(np.broadcast_to(z[None, None, :], (64, 64, 32)).copy(), origin, voxel, trunc, "cpu")
 
 
-def test_renderer_shadow_falls_away_from_the_light():
+def _floor_input(scene, F: np.ndarray):
+    """(RenderInput of `scene` on the floor z = 0 seen from 1 m above at 64 x 48, lit by F; the floor's maps)."""
     intr = Intrinsics(64, 48, 50.0, 50.0, 31.5, 23.5)
     look_down = np.array([[1.0, 0, 0, 0], [0, -1, 0, 0], [0, 0, -1, 1.0], [0, 0, 0, 1]])  # z = 1, facing -z
-    scene = load_scene([ObjectConfig(mesh=str(DEMO_MESH), scale=0.2)])   # committed weights: no training
     floor = _floor_grid()
     maps = raycast_surface(floor, intr, look_down, 0.1, 3.0, stride=2)
     full = raycast_surface(floor, intr, look_down, 0.1, 3.0)
     gb = GBufferRenderer(scene, intr, 2).render(look_down, full.depth)
+    camera = np.full((48, 64, 3), 0.4, np.float32)
+    return RenderInput(camera, F, 1.0, floor, voxel_grid(scene, 0.02, "cpu"), maps, gb, scene.bounds,
+                       lambda b: make_direction_set(16, b, seed=0), 0.02, 0.3, scene=scene), full
+
+
+def test_renderer_shadow_falls_away_from_the_light():
+    scene = load_scene([ObjectConfig(mesh=str(DEMO_MESH), scale=0.2)])   # committed weights: no training
     t = math.radians(30.0)
     sun = np.array([math.sin(t), 0.0, math.cos(t)])                     # light towards +x
     F = lobe_sh(np.array([3.0, 2.8, 2.5]), sun, math.radians(2.0), 3)
     F[:, 0] += 0.3
-    camera = np.full((48, 64, 3), 0.4, np.float32)
-    inp = RenderInput(camera, F, 1.0, floor, voxel_grid(scene, 0.02, "cpu"), maps, gb, scene.bounds,
-                      lambda b: make_direction_set(16, b, seed=0), 0.02, 0.3, scene=scene)
+    inp, full = _floor_input(scene, F)
+    camera, gb = inp.camera, inp.gbuffer
     layers = get_renderer("neural_soft")(inp)
+    assert "neural_soft: " + str(DEMO_MESH) + " stands on its +z side" in layers.notes
     out = composite(camera, layers)
     assert np.all(np.isfinite(out)) and np.all(np.isfinite(layers.ratio)) and np.all(np.isfinite(layers.colour))
     assert layers.ratio.min() >= 0 and layers.ratio.max() <= 1
@@ -132,6 +155,64 @@ def test_renderer_shadow_falls_away_from_the_light():
     assert len(away) and len(toward)
     assert away.mean() < 0.6 and toward.min() > 0.97, (away.mean(), toward.min())
     assert np.all(layers.ratio[real & (np.abs(x) > 0.45)] == 1.0)      # beyond the texture square
+
+
+def test_standing_rotation_and_the_keys_of_the_sides():
+    for name in AXES:
+        up = axis_vector(name)
+        S = standing_rotation(up)
+        assert np.allclose(S @ up, [0, 0, 1]) and np.allclose(S @ S.T, np.eye(3)) and np.isclose(np.linalg.det(S), 1)
+    assert np.array_equal(standing_rotation(axis_vector("+z")), np.eye(3))
+    settings = NeuralSoftSettings()
+    assert weights_key(DEMO_MESH, settings, axis_vector("+z")) == weights_key(DEMO_MESH, settings)  # committed: upright
+    keys = {weights_key(DEMO_MESH, settings, axis_vector(name)) for name in AXES}
+    assert len(keys) == 6
+    assert weights_key(DEMO_MESH, settings, -axis_vector("+z")) == weights_key(DEMO_MESH, settings, axis_vector("-z"))
+
+
+def _pillar(tmp_path, rotation, position):
+    """(mesh file, scene): a pillar modelled y-up (0.3 along its +y, 0.1 across), placed by the session's rotation."""
+    mesh = tmp_path / "pillar.obj"
+    trimesh.creation.box(extents=(0.1, 0.3, 0.1)).export(mesh)
+    return mesh, load_scene([ObjectConfig(mesh=str(mesh), rotation=rotation, position=position)])
+
+
+@pytest.mark.parametrize("world_up", ["+z", "-y"])
+def test_y_up_mesh_stood_up_casts_its_plane_shadow(tmp_path, monkeypatch, world_up):
+    """A y-up pillar stood on a floor (a z-up world: turned 90 degrees about x; a y-down world as ICL-NUIM's: half a
+    turn about x) stands on its +y side, found from the floor's receivers, and its shadow falls on the floor away
+    from the light (before, its ground plane was the mesh's z = min z, a side of the pillar: no shadow at all)."""
+    monkeypatch.setenv("PHOTOREG_CACHE", str(tmp_path / "cache"))
+    up_w = axis_vector(world_up)
+    across = np.array([1.0, 0.0, 0.0])                               # along the floor in both worlds
+    mesh, scene = _pillar(tmp_path, (90.0, 0.0, 0.0) if world_up == "+z" else (180.0, 0.0, 0.0), 0.15 * up_w)
+    obj = scene.objects[0]
+    assert np.isclose((obj.vertices @ up_w).min(), 0.0) and np.isclose((obj.vertices @ up_w).max(), 0.3)
+    g = np.linspace(-0.3, 0.3, 13)
+    floor = (g[:, None, None] * across + g[None, :, None] * np.cross(up_w, across)).reshape(-1, 3)
+    wall = 0.05 * across + 0.2 * up_w + g[:, None] * np.cross(up_w, across)   # a wall touching its +x face, facing -x
+    points, normals = np.vstack([floor, wall]), np.vstack([np.tile(up_w, (len(floor), 1)), np.tile(-across, (13, 1))])
+    up = support_axis(obj, points, normals, 0.01)
+    assert np.array_equal(up, axis_vector("+y"))
+    assert support_axis(obj, wall, np.tile(-across, (13, 1)), 0.01) is None   # too few receivers: no support
+    t = math.radians(25.0)
+    light = math.sin(t) * across + math.cos(t) * up_w               # towards +x: the shadow falls to -x
+    x = np.array([-0.12, -0.09, 0.09, 0.12])
+    vis, notes = plane_visibility(obj, x[:, None] * across, light, 0.01, up, TINY)
+    assert not notes and np.all(vis[:2] < 0.5) and np.all(vis[2:] > 0.9), vis
+    assert (tmp_path / "cache" / "neural_soft" / f"{weights_key(mesh, TINY, up)}.npz").is_file()
+
+
+def test_renderer_without_a_light_trains_nothing(tmp_path, monkeypatch):
+    """Under ambient light alone there is no shadow to draw: no weights are looked for or trained (before, a mesh
+    without weights was trained for minutes inside the frame)."""
+    monkeypatch.setenv("PHOTOREG_CACHE", str(tmp_path / "cache"))
+    _, scene = _pillar(tmp_path, (90.0, 0.0, 0.0), (0.0, 0.0, 0.15))
+    F = np.zeros((3, 9))
+    F[:, 0] = 1.0
+    layers = get_renderer("neural_soft")(_floor_input(scene, F)[0])
+    assert np.all(layers.ratio == 1.0) and "neural_soft: no directional light in F, no shadows" in layers.notes
+    assert not (tmp_path / "cache").exists()
 
 
 def test_renderer_needs_the_scene():

@@ -1,8 +1,8 @@
 """Neural soft-shadow weights on disk: training settings, the per-mesh key, where weights are looked up
 (the user cache, then the ones committed under data/weights/neural_soft) and the .npz format.
 
-key = sha256(mesh file bytes + the settings as canonical JSON), first 16 hex digits: a changed mesh or
-setting never reuses stale weights. The file holds W0.., b0.. (float16) and a JSON `meta` string with
+key = sha256(mesh file bytes + the settings as canonical JSON [+ the mesh's up when it is not its +z]), first 16 hex
+digits: a changed mesh, setting or up never reuses stale weights. The file holds W0.., b0.. (float16) and a JSON `meta` string with
 the settings, the mesh's sha256 and the training figures.
 """
 from __future__ import annotations
@@ -62,10 +62,42 @@ def mesh_sha256(mesh_path: str | os.PathLike) -> str:
     return hashlib.sha256(path.read_bytes()).hexdigest()
 
 
-def weights_key(mesh_path: str | os.PathLike, settings: NeuralSoftSettings) -> str:
-    """16 hex digits identifying (mesh bytes, settings)."""
+def standing_rotation(up: np.ndarray) -> np.ndarray:
+    """Rotation (3, 3) from the mesh's own frame to the frame its shadow textures are made in, whose +z is the
+    mesh's `up` (a signed unit axis of the mesh: the side it stands on, neural_soft.support_axis); the turn of least
+    angle, half a turn about x for -z, the identity for +z."""
+    z = np.array([0.0, 0.0, 1.0])
+    c, v = float(up @ z), np.cross(up, z)
+    if c <= -1.0 + 1e-12:
+        return np.diag([1.0, -1.0, -1.0])
+    vx = np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+    return np.eye(3) + vx + vx @ vx / (1.0 + c)
+
+
+AXES = ("+x", "+y", "+z", "-x", "-y", "-z")   # the sides a mesh can stand on, by the axis of its frame that is up
+
+
+def axis_name(up: np.ndarray) -> str:
+    """'+y' for the unit axis (0, 1, 0), and so on (AXES)."""
+    k = int(np.argmax(np.abs(up)))
+    return ("+" if up[k] > 0 else "-") + "xyz"[k]
+
+
+def axis_vector(name: str) -> np.ndarray:
+    """The unit axis (3,) of a name of AXES; ValueError otherwise."""
+    if name not in AXES:
+        raise ValueError(f"up {name!r}: one of {', '.join(AXES)}")
+    v = np.zeros(3)
+    v["xyz".index(name[1])] = 1.0 if name[0] == "+" else -1.0
+    return v
+
+
+def weights_key(mesh_path: str | os.PathLike, settings: NeuralSoftSettings, up: np.ndarray | None = None) -> str:
+    """16 hex digits identifying (mesh bytes, settings, the mesh's up: standing_rotation; None or +z: upright)."""
     h = hashlib.sha256(mesh_sha256(mesh_path).encode())
     h.update(json.dumps(asdict(settings), sort_keys=True).encode())
+    if up is not None and not np.array_equal(np.asarray(up, np.float64), [0.0, 0.0, 1.0]):
+        h.update(json.dumps((np.asarray(up, np.float64) + 0.0).tolist()).encode())   # + 0.0: no -0.0
     return h.hexdigest()[:16]
 
 

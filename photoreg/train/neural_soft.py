@@ -146,11 +146,12 @@ def texture_rmse(net: ShadowMLP, ds: ShadowDataset) -> float:
 
 def train_mesh(mesh_path: str | Path, vertices: np.ndarray, faces: np.ndarray,
                settings: NeuralSoftSettings = NeuralSoftSettings(), out_dir: Path | None = None,
-               progress: Progress | None = stderr_progress) -> Path:
-    """Trace, train and write the weights of one mesh (local vertices (V, 3), faces) to
-    out_dir/<key>.npz (default: the cache), with its figures in the file's meta. Returns the path."""
+               progress: Progress | None = stderr_progress, up: np.ndarray | None = None) -> Path:
+    """Trace, train and write the weights of one mesh (vertices (V, 3) in its standing frame, faces; `up`: the
+    mesh's up in its own frame, None for +z: neural_soft_weights.standing_rotation) to out_dir/<key>.npz (default:
+    the cache), with its figures in the file's meta. Returns the path."""
     s = settings.check()
-    key = weights_key(mesh_path, s)
+    key = weights_key(mesh_path, s, up)
     tracer = ShadowTracer(vertices, faces)
     t0 = time.perf_counter()
     ds = make_dataset(tracer, light_grid(s.theta_max_deg, s.theta_step_deg, s.phi_step_deg), s, progress)
@@ -158,6 +159,7 @@ def train_mesh(mesh_path: str | Path, vertices: np.ndarray, faces: np.ndarray,
     res = train_mlp(ds, s, progress)
     held = make_dataset(tracer, directions_deg(HELD_OUT), s)
     meta = {"key": key, "mesh": Path(mesh_path).name, "mesh_sha256": mesh_sha256(mesh_path), "settings": asdict(s),
+            "up": None if up is None else np.asarray(up, np.float64).tolist(),
             "n_params": res.net.n_params, "trace_seconds": round(trace_s, 1), "train_seconds": round(res.seconds, 1),
             "final_loss": float(res.losses[-max(len(res.losses) // 20, 1):].mean()),
             "rmse_train": texture_rmse(res.net, ds), "rmse_held_out": texture_rmse(res.net, held)}
@@ -169,11 +171,12 @@ def train_mesh(mesh_path: str | Path, vertices: np.ndarray, faces: np.ndarray,
 
 def train_command(args) -> int:
     """`photoreg train neural_soft SESSION.toml`: train (or find cached) weights for every object's mesh, once per
-    mesh; with --out, each mesh's weights end up in that folder (found ones copied there)."""
+    mesh and side it stands on (--up: a signed axis of the mesh, or auto, the one its rotation turns nearest to the
+    world's +z); with --out, each mesh's weights end up in that folder (found ones copied there)."""
     import shutil
 
     from photoreg.config import load_session
-    from photoreg.render.neural_soft_weights import find_weights
+    from photoreg.render.neural_soft_weights import axis_name, axis_vector, find_weights, standing_rotation
     from photoreg.render.scene import load_scene
 
     out = Path(args.out) if args.out else None
@@ -183,8 +186,10 @@ def train_command(args) -> int:
     settings = NeuralSoftSettings()
     done: set[str] = set()
     for obj in load_scene(session.objects).objects:
-        key = weights_key(obj.source, settings)
-        if key in done:   # another object of the same mesh
+        up = axis_vector(axis_name(np.linalg.solve(obj.transform[:3, :3], [0.0, 0.0, 1.0])) if args.up == "auto"
+                         else args.up)
+        key = weights_key(obj.source, settings, up)
+        if key in done:   # another object of the same mesh, standing on the same side
             continue
         done.add(key)
         found = find_weights(key)
@@ -195,5 +200,7 @@ def train_command(args) -> int:
                 found = out / found.name
             print(f"{obj.source}: weights at {found}")
             continue
-        print(f"{obj.source}: {train_mesh(obj.source, obj.local_vertices(), obj.faces, settings, out)}")
+        standing = obj.local_vertices() @ standing_rotation(up).T
+        print(f"{obj.source} standing on its {args.up if args.up != 'auto' else axis_name(up)} side: "
+              f"{train_mesh(obj.source, standing, obj.faces, settings, out, up=up)}")
     return 0
