@@ -2,8 +2,8 @@
 (the user cache, then the ones committed under data/weights/neural_soft) and the .npz format.
 
 key = sha256(mesh file bytes + the settings as canonical JSON [+ the mesh's up when it is not its +z]), first 16 hex
-digits: a changed mesh, setting or up never reuses stale weights. The file holds W0.., b0.. (float16) and a JSON `meta` string with
-the settings, the mesh's sha256 and the training figures.
+digits: a changed mesh, setting or up never reuses stale weights. The file holds W0.., b0.. (float16) and a JSON
+`meta` string with the settings, the mesh's sha256, its up and the training figures.
 """
 from __future__ import annotations
 
