@@ -46,6 +46,9 @@ def _add_run_options(p: argparse.ArgumentParser, out_help: str) -> None:
     p.add_argument("--normal-smoothing", type=float, help="radius in voxels of the ray-cast normals' tangent mean, "
                                                           "0 = off (reconstruction.normal_smoothing_voxels, default 0)")
     p.add_argument("--no-poses", action="store_true", help="ignore recorded poses and track the camera")
+    p.add_argument("--pose-time-offset", type=float, help="seconds added to the frames' times where the recorded poses "
+                                                          "(TUM groundtruth.txt) are looked up: a motion-capture "
+                                                          "clock's offset (recording.pose_time_offset, default 0)")
     p.add_argument("--shadows", choices=SHADOW_RENDERERS, help="shadow renderer (overrides [render] shadows)")
     p.add_argument("--render-stride", type=int, help="sample the objects' shadows every n-th pixel, full resolution "
                                                      "along their silhouettes (render.stride, default 4)")
@@ -154,6 +157,9 @@ def build_parser() -> argparse.ArgumentParser:
                                                                 "objects (default jpeg; png: lossless)")
     p.add_argument("--no-poses", action="store_true", help="ask the server to track the camera instead of "
                                                            "using recorded poses")
+    p.add_argument("--pose-time-offset", type=float, help="seconds added to the frames' times where the recorded poses "
+                                                          "sent are looked up (default: the --session's "
+                                                          "recording.pose_time_offset, else 0)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
 
     p = sub.add_parser("bench", help="benchmarks: speed (per-stage ms), the speed-against-error sweep, the shadow "

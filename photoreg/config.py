@@ -28,6 +28,10 @@ class RecordingConfig:
     format: str = "auto"          # auto | native | tum | redwood | 7scenes
     undistort: bool = False
     use_poses: bool = True        # False: track the camera (frame-to-model odometry)
+    # Seconds added to the frames' times where poses given by time (TUM groundtruth.txt) are looked up: a motion-capture
+    # clock's offset against the colour camera's, which slides an inserted object over the frames as the camera turns
+    # (benchmarks/pose_offset.py measures it; TUM fr1_rpy's is 0: benchmarks/tracking.md, "The poses' clock").
+    pose_time_offset: float = 0.0
 
 
 @dataclass
@@ -333,7 +337,14 @@ def resolve_path(p: str, base: Path, what: str) -> Path:
     return q if q.is_absolute() else (base / q).resolve()
 
 
+MAX_POSE_TIME_OFFSET = 1.0   # seconds: recording.pose_time_offset (a clock's offset, not a recording's start)
 MAX_STRIDE = 64   # lighting.stride, render.stride: a sample's box grows with the stride (stride | 1 pixels square)
+
+
+def check_pose_time_offset(seconds: float, what: str) -> None:
+    """ValueError naming `what` unless seconds is a finite number within MAX_POSE_TIME_OFFSET of 0."""
+    if not (isinstance(seconds, (int, float)) and math.isfinite(seconds) and abs(seconds) <= MAX_POSE_TIME_OFFSET):
+        raise ValueError(f"{what} must be seconds in -{MAX_POSE_TIME_OFFSET:g}..{MAX_POSE_TIME_OFFSET:g}, got {seconds!r}")
 
 
 def validate(s: Session) -> None:
@@ -359,6 +370,7 @@ def validate(s: Session) -> None:
     for i, obj in enumerate(s.objects):
         _check_object(obj, where, f"objects[{i}]")
     fitted = L.bands if L.select == "fixed" else L.max_bands   # the most bands a solve may fit
+    check_pose_time_offset(s.recording.pose_time_offset, f"{where}: recording.pose_time_offset")
     checks = [(1 <= L.bands <= 8, "lighting.bands must be in 1..8"),
               (L.rays >= 1, "lighting.rays must be >= 1"),
               (2 * L.rays >= fitted ** 2,   # every transfer vector is a sum over the 2 x rays directions of one set

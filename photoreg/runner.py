@@ -87,7 +87,8 @@ def session_from_args(args) -> Session:
         s.output.video = True
     if args.asynchronous:
         s.lighting.asynchronous = True
-    for opt, section, key in (("stride", "lighting", "stride"), ("rays", "lighting", "rays"),
+    for opt, section, key in (("pose_time_offset", "recording", "pose_time_offset"),
+                              ("stride", "lighting", "stride"), ("rays", "lighting", "rays"),
                               ("bands", "lighting", "bands"), ("ray_length", "lighting", "ray_length"),
                               ("every", "lighting", "every"),
                               ("depth_filter", "reconstruction", "depth_filter_px"),
@@ -189,10 +190,10 @@ def run_session(s: Session, quiet: bool = False, on_frame: Callable[[int, int], 
     """Process a session; returns the summary (also written to summary.json).
 
     on_frame(frames done, frames selected) is called after each frame (batch progress from worker processes)."""
-    from .io.recording import ReadAhead, open_recording
+    from .io.recording import ReadAhead, open_configured
     from .pipeline import Pipeline
 
-    rec = open_recording(s.recording.path, fmt=s.recording.format, undistort=s.recording.undistort)
+    rec = open_configured(s.recording)
     indices = select_frames(s.frames, len(rec), s.recording.path)
     track_without_poses(s, rec, "photoreg")
     for warning in rec.warnings:
@@ -266,7 +267,8 @@ def run_session(s: Session, quiet: bool = False, on_frame: Callable[[int, int], 
         "video": None if video is None else {"file": video.path.name, "frames": video.frames, "fps": round(fps, 3)},
         "timings_ms_mean": stage_ms.means(),
         "settings": {"lighting": vars(s.lighting), "reconstruction": vars(s.reconstruction),
-                     "use_poses": s.recording.use_poses, "undistort": s.recording.undistort, "frames": s.frames,
+                     "use_poses": s.recording.use_poses, "undistort": s.recording.undistort,
+                     "pose_time_offset": s.recording.pose_time_offset, "frames": s.frames,
                      "render": vars(s.render) if s.objects else None},
     }
     if pipe.tracker is not None:

@@ -13,6 +13,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from photoreg.cli import main
+from photoreg.config import load_session
 from photoreg.io.poses import check_pose, format_tum_line, interpolate_poses, read_tum_trajectory
 from photoreg.io.recording import iter_frames, open_recording
 from photoreg.io.redwood import numbered
@@ -270,6 +271,26 @@ def test_native_round_trip(tmp_path):
         assert frame.depth[0, 0] == 0
         np.testing.assert_allclose(frame.pose, gt_pose(frame.timestamp), atol=1e-6)
         assert frame.source == str(tmp_path / f"rgb/{i:06d}.png")
+
+
+def test_pose_time_offset_looks_the_poses_up_later_or_earlier(tmp_path):
+    """recording.pose_time_offset: the poses of groundtruth.txt at the frames' times + the offset (a motion-capture
+    clock's offset; TUM fr1_rpy's -28 ms, benchmarks/pose_offset.py); the frames' own times stay; refused where each
+    frame has its own pose (7-Scenes) and out of range in a session."""
+    write_native(tmp_path / "rec")
+    rec = open_recording(tmp_path / "rec", pose_time_offset=-0.028)
+    assert any("-28 ms (recording.pose_time_offset)" in n for n in rec.notes)
+    for frame in rec:
+        assert frame.timestamp == pytest.approx(100.0 + frame.index / 30)
+        np.testing.assert_allclose(frame.pose, gt_pose(frame.timestamp - 0.028), atol=1e-6)
+        assert not np.allclose(frame.pose, gt_pose(frame.timestamp), atol=1e-3)
+    write_7scenes(tmp_path / "7s")
+    with pytest.raises(ValueError, match="pose_time_offset applies to poses given by time"):
+        open_recording(tmp_path / "7s", pose_time_offset=0.01)
+    session = tmp_path / "s.toml"
+    session.write_text(f'[recording]\npath = "{tmp_path / "rec"}"\npose_time_offset = -1.5\n')
+    with pytest.raises(ValueError, match=r"s.toml: recording.pose_time_offset must be seconds in -1..1, got -1.5"):
+        load_session(session)
 
 
 def test_native_association_without_match(tmp_path, capsys):

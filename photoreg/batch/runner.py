@@ -40,13 +40,13 @@ def plan(paths: list[str], device: str | None = None) -> list[SessionTask]:
 
     `device` (the --device option) overrides each session's device. Two sessions writing to the same
     output folder are refused, since they would overwrite each other."""
-    from ..io.recording import open_recording
+    from ..io.recording import open_configured
 
     errors, tasks = [], []
     for i, p in enumerate(paths):
         try:
             s = load_session(p)
-            rec = open_recording(s.recording.path, fmt=s.recording.format, undistort=s.recording.undistort)
+            rec = open_configured(s.recording)
             select_frames(s.frames, len(rec), s.recording.path)
         except (ValueError, OSError) as e:
             errors.append(str(e) if str(Path(p)) in str(e) else f"{p}: {e}")

@@ -43,11 +43,11 @@ def run_all_renderers(session, frames: list[int], renderers: dict,
     RenderInput: {renderer: {frame: (composite linear HxWx3, ms)}}. With `light` (score.true_light: the
     generator's SH, at full band count, and sun) each renderer also runs with it in place of the estimate, as
     "<renderer>, true light" (ms of those calls: NaN)."""
-    from ..io.recording import iter_frames, open_recording
+    from ..io.recording import iter_frames, open_configured
     from ..pipeline import Pipeline
     from ..render.composite import composite
 
-    rec = open_recording(session.recording.path, fmt=session.recording.format)
+    rec = open_configured(session.recording)
     pipe = Pipeline(session, rec.intrinsics)
     if pipe.render is None:
         raise ValueError(f"{session.source}: the session has no [[objects]] to render")

@@ -40,14 +40,14 @@ def bench_recording(session: Session, warmup: int = 2) -> dict:
     import open3d as o3d
     import warp as wp
 
-    from ..io.recording import iter_frames, open_recording
+    from ..io.recording import iter_frames, open_configured
     from ..kernels.launch import cpu_threads
     from ..pipeline import Pipeline
     from ..runner import track_without_poses
 
     if warmup < 0:
         raise ValueError(f"bench: --warmup must be >= 0, got {warmup}")
-    rec = open_recording(session.recording.path, fmt=session.recording.format)
+    rec = open_configured(session.recording)
     indices = select_frames(session.frames, len(rec), session.recording.path)
     if len(indices) <= warmup:
         raise ValueError(f"bench: need more than {warmup} frames (warm-up), got {len(indices)}")

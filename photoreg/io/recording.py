@@ -151,8 +151,9 @@ def detect_format(path: Path) -> str:
                      "folders (ICL-NUIM/Redwood) or frame-XXXXXX.color.png files (7-Scenes)")
 
 
-def open_recording(path, fmt: str = "auto", undistort: bool = False) -> Recording:
-    """Open a recording folder and check its index files; fmt is 'auto' or one of FORMATS."""
+def open_recording(path, fmt: str = "auto", undistort: bool = False, pose_time_offset: float = 0.0) -> Recording:
+    """Open a recording folder and check its index files; fmt is 'auto' or one of FORMATS. pose_time_offset:
+    seconds added to the frames' times where poses given by time (TUM groundtruth.txt) are looked up."""
     from . import redwood, sevenscenes, tum  # they build Recording objects, so import them here
 
     path = Path(path)
@@ -163,12 +164,20 @@ def open_recording(path, fmt: str = "auto", undistort: bool = False) -> Recordin
     if fmt == "auto":
         fmt = detect_format(path)
     if fmt in ("native", "tum"):
-        return tum.open_tum(path, native=fmt == "native", undistort=undistort)
-    if fmt == "redwood":
-        return redwood.open_redwood(path, undistort=undistort)
-    if fmt == "7scenes":
-        return sevenscenes.open_7scenes(path, undistort=undistort)
-    raise ValueError(f"unknown recording format {fmt!r}: expected auto or one of {', '.join(FORMATS)}")
+        return tum.open_tum(path, native=fmt == "native", undistort=undistort, pose_time_offset=pose_time_offset)
+    if fmt not in FORMATS:
+        raise ValueError(f"unknown recording format {fmt!r}: expected auto or one of {', '.join(FORMATS)}")
+    if pose_time_offset:
+        raise ValueError(f"{path}: recording.pose_time_offset applies to poses given by time (TUM groundtruth.txt); a "
+                         f"{fmt} recording gives each frame its own pose")
+    return redwood.open_redwood(path, undistort=undistort) if fmt == "redwood" else \
+        sevenscenes.open_7scenes(path, undistort=undistort)
+
+
+def open_configured(cfg) -> Recording:
+    """open_recording of a session's [recording] (config.RecordingConfig): its path, format, undistort and
+    pose_time_offset."""
+    return open_recording(cfg.path, fmt=cfg.format, undistort=cfg.undistort, pose_time_offset=cfg.pose_time_offset)
 
 
 def iter_frames(recording: Recording, indices: Iterable[int] | None = None,

@@ -79,8 +79,9 @@ def associate(first: np.ndarray, second: np.ndarray, max_difference: float = MAX
     return sorted(pairs)
 
 
-def open_tum(path: Path, native: bool, undistort: bool) -> Recording:
-    """A TUM/native folder; frame order is the colour frames' (rgb.txt) order."""
+def open_tum(path: Path, native: bool, undistort: bool, pose_time_offset: float = 0.0) -> Recording:
+    """A TUM/native folder; frame order is the colour frames' (rgb.txt) order; the poses of groundtruth.txt are
+    taken at the frames' times + pose_time_offset seconds."""
     if native and not (path / "intrinsics.json").is_file():
         raise FileNotFoundError(f"{path / 'intrinsics.json'}: no such file (a native recording needs it)")
     calib = read_calibration(path, DEPTH_SCALE) or freiburg_calibration(path)
@@ -115,8 +116,9 @@ def open_tum(path: Path, native: bool, undistort: bool) -> Recording:
     poses = None
     if (path / "groundtruth.txt").is_file():
         gt_times, gt_poses = read_tum_trajectory(path / "groundtruth.txt")
-        poses = interpolate_poses(gt_times, gt_poses, times)
-        notes.append("poses from groundtruth.txt, interpolated to the colour frame times")
+        poses = interpolate_poses(gt_times, gt_poses, times + pose_time_offset)
+        notes.append("poses from groundtruth.txt, interpolated to the colour frame times" + (
+            f" {pose_time_offset * 1000:+g} ms (recording.pose_time_offset)" if pose_time_offset else ""))
         if len(gt_times) == 1:
             notes.append(f"groundtruth.txt holds one pose: the frames within {MAX_GAP} s of it take it, the others "
                          "have none")

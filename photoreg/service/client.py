@@ -296,12 +296,16 @@ def session_options(path: str | Path) -> dict:
 
 def stream_command(args) -> int:
     """`photoreg stream RECORDING --url URL`: replay a recording through a server, save the replies."""
-    from ..config import select_frames
+    from ..config import check_pose_time_offset, load_session, select_frames
     from ..io.poses import write_tum_trajectory
     from ..io.recording import ReadAhead, open_recording
     from ..recon.tracking import ate_against
 
-    rec = open_recording(args.recording)
+    offset = args.pose_time_offset
+    if offset is None:
+        offset = load_session(args.session, files=False).recording.pose_time_offset if args.session else 0.0
+    check_pose_time_offset(offset, "--pose-time-offset")
+    rec = open_recording(args.recording, pose_time_offset=offset)
     indices = select_frames(args.frames or "", len(rec), args.recording)
     options: dict = session_options(args.session) if args.session else {}
     lighting = {k: v for k, v in (("bands", args.bands), ("rays", args.rays), ("stride", args.stride),
