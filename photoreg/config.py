@@ -344,7 +344,8 @@ MAX_STRIDE = 64   # lighting.stride, render.stride: a sample's box grows with th
 def check_pose_time_offset(seconds: float, what: str) -> None:
     """ValueError naming `what` unless seconds is a finite number within MAX_POSE_TIME_OFFSET of 0."""
     if not (isinstance(seconds, (int, float)) and math.isfinite(seconds) and abs(seconds) <= MAX_POSE_TIME_OFFSET):
-        raise ValueError(f"{what} must be seconds in -{MAX_POSE_TIME_OFFSET:g}..{MAX_POSE_TIME_OFFSET:g}, got {seconds!r}")
+        raise ValueError(f"{what} must be seconds in -{MAX_POSE_TIME_OFFSET:g}..{MAX_POSE_TIME_OFFSET:g}, "
+                         f"got {seconds!r}")
 
 
 def validate(s: Session) -> None:
