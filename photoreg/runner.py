@@ -145,11 +145,11 @@ def write_pictures(out: Path, r: FrameResult) -> None:
 
 
 def write_composite(out: Path, r: FrameResult, lightmap: np.ndarray) -> None:
-    """composite/NNNNNN.png (sRGB), composite_linear/NNNNNN.exr and lightmap/NNNNNN.exr: the linear
+    """composite/NNNNNN.png (sRGB), composite_linear/NNNNNN.exr (16-bit floats) and lightmap/NNNNNN.exr: the linear
     shadow-ratio layer on real surfaces (1 = unchanged, cam * ratio = real pixel), all atomic."""
     name = f"{r.index:06d}"
     write_png_rgb(out / "composite" / f"{name}.png", linear_to_srgb(r.composite))
-    write_exr(out / "composite_linear" / f"{name}.exr", r.composite)
+    write_exr(out / "composite_linear" / f"{name}.exr", r.composite, half=True)
     write_exr(out / "lightmap" / f"{name}.exr", lightmap)
 
 

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from photoreg.config import load_session
-from photoreg.io.images import _srgb_oetf8, linear_to_srgb
+from photoreg.io.images import _srgb_oetf8, linear_to_srgb, read_exr, read_rgb
 from photoreg.io.ahead import Ahead
 from photoreg.io.recording import ReadAhead
 from photoreg.io.writer import OutputWriter
@@ -239,6 +239,13 @@ def test_a_run_leaves_only_its_own_outputs(tmp_path, capsys):
                      "sphere/000000.png", *(f"{d}/00000{i}.{e}" for i in (0, 1) for d, e in
                                             (("composite", "png"), ("composite_linear", "exr"), ("lightmap", "exr")))}
     assert f"removed {len(earlier)} file(s) an earlier run left in {tmp_path}" in capsys.readouterr().err
+    import OpenEXR   # composite_linear in 16-bit floats (a third of float32's write time), the lightmap in float32
+
+    for folder, dtype in (("composite_linear", np.float16), ("lightmap", np.float32)):
+        with OpenEXR.File(str(tmp_path / folder / "000001.exr")) as f:
+            assert f.channels()["RGB"].pixels.dtype == dtype
+    linear, srgb = read_exr(tmp_path / "composite_linear" / "000001.exr"), read_rgb(tmp_path / "composite" / "000001.png")
+    assert np.abs(linear_to_srgb(linear).astype(int) - srgb).max() <= 1
 
     session = load_session(REPO / "data" / "demo" / "session.toml")
     session.output.dir, session.device, session.frames = str(tmp_path), "cpu", "0:3"
