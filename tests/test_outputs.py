@@ -244,7 +244,8 @@ def test_a_run_leaves_only_its_own_outputs(tmp_path, capsys):
     for folder, dtype in (("composite_linear", np.float16), ("lightmap", np.float32)):
         with OpenEXR.File(str(tmp_path / folder / "000001.exr")) as f:
             assert f.channels()["RGB"].pixels.dtype == dtype
-    linear, srgb = read_exr(tmp_path / "composite_linear" / "000001.exr"), read_rgb(tmp_path / "composite" / "000001.png")
+    linear = read_exr(tmp_path / "composite_linear" / "000001.exr")
+    srgb = read_rgb(tmp_path / "composite" / "000001.png")
     assert np.abs(linear_to_srgb(linear).astype(int) - srgb).max() <= 1
 
     session = load_session(REPO / "data" / "demo" / "session.toml")
