@@ -24,7 +24,7 @@ def composites(session: str, frames: str, device: str, out: str, *settings: str)
     """Run the session's frames in line with `settings` (SECTION.KEY=VALUE, strings) set; save every composite, shadow
     ratio and coverage (and the render stage's ms)."""
     from photoreg.config import load_session, parse_frames
-    from photoreg.io.recording import iter_frames, open_recording
+    from photoreg.io.recording import iter_frames, open_configured
     from photoreg.pipeline import Pipeline
 
     s = load_session(session)
@@ -33,7 +33,7 @@ def composites(session: str, frames: str, device: str, out: str, *settings: str)
         key, value = setting.split("=", 1)
         section, name = key.split(".")
         setattr(getattr(s, section), name, value)
-    rec = open_recording(s.recording.path, fmt=s.recording.format)
+    rec = open_configured(s.recording)
     pipe = Pipeline(s, rec.intrinsics)
     comps, ratios, alphas, ms = [], [], [], []
     for f in iter_frames(rec, parse_frames(frames, len(rec))):

@@ -13,7 +13,7 @@ import sys
 import numpy as np
 
 from photoreg.config import load_session, parse_frames
-from photoreg.io.recording import iter_frames, open_recording
+from photoreg.io.recording import iter_frames, open_configured
 from photoreg.pipeline import Pipeline
 from photoreg.render.gbuffer import GBufferRenderer
 
@@ -35,7 +35,7 @@ def main() -> None:
     frames = sys.argv[2] if len(sys.argv) > 2 else "0:8"
     s.device = sys.argv[3] if len(sys.argv) > 3 else "cuda"
     s.render.gbuffer = "pyrender"
-    rec = open_recording(s.recording.path, fmt=s.recording.format)
+    rec = open_configured(s.recording)
     pipe = Pipeline(s, rec.intrinsics)
     stage = pipe.render
     drawn, draw = stage.gbuffer, stage.gbuffer.render

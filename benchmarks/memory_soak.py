@@ -23,7 +23,7 @@ import numpy as np
 
 from photoreg.config import Session, load_session
 from photoreg.io.poses import format_tum_line
-from photoreg.io.recording import open_recording
+from photoreg.io.recording import open_configured, open_recording
 from photoreg.pipeline import Pipeline
 
 DEMO = Path(__file__).resolve().parents[1] / "data" / "demo"
@@ -81,7 +81,7 @@ def main() -> None:
     if config not in CONFIGS:
         raise SystemExit(f"config: one of {', '.join(CONFIGS)}, got {config!r}")
     s = session(config)
-    rec = open_recording(s.recording.path)
+    rec = open_configured(s.recording)
     frames = [rec.frame(i) if s.recording.use_poses else dataclasses.replace(rec.frame(i), pose=None)
               for i in range(len(rec))]
     dt = float(np.median(np.diff(rec.timestamps)))

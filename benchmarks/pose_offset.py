@@ -9,7 +9,7 @@ ways, over offsets added to the frames' times where the poses are looked up:
   orientations compared with the recorded ones at the depth images' times (rotation RMSE after the best common
   rotation; the frame-to-frame rotations' RMSE, free of the tracking's drift).
 
-usage: python benchmarks/pose_offset.py RECORDING [--frames 100] [--offsets-ms -42:14:7] [--tracked TRAJECTORY]
+usage: python benchmarks/pose_offset.py RECORDING [--frames 100] [--offsets-ms=-42:14:7] [--tracked TRAJECTORY]
 (--tracked: a trajectory.txt of an earlier `photoreg run RECORDING --no-poses --frames 0:N`, instead of tracking)
 """
 from __future__ import annotations
@@ -77,7 +77,7 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("recording")
     ap.add_argument("--frames", type=int, default=100, help="the first N frames")
-    ap.add_argument("--offsets-ms", default="-42:14:7", help="first:last:step, milliseconds")
+    ap.add_argument("--offsets-ms", default="-42:14:7", help="first:last:step, milliseconds (--offsets-ms=-42:14:7)")
     ap.add_argument("--tracked", help="trajectory.txt of an earlier `photoreg run RECORDING --no-poses`")
     args = ap.parse_args()
     rec = Path(args.recording)

@@ -22,14 +22,14 @@ def main() -> None:
 
     import photoreg.kernels.transfer as transfer
     from photoreg.cli import build_parser
-    from photoreg.io.recording import iter_frames, open_recording
+    from photoreg.io.recording import iter_frames, open_configured
     from photoreg.kernels.launch import launch_rows
     from photoreg.pipeline import Pipeline
     from photoreg.runner import session_from_args
 
     s = session_from_args(build_parser().parse_args(["run", args.input, "--device", "cpu", "--bands",
                                                      str(args.bands)]))
-    rec = open_recording(s.recording.path, fmt=s.recording.format)
+    rec = open_configured(s.recording)
     pipe = Pipeline(s, rec.intrinsics)
     calls = []
     real = transfer.radiance_transfer

@@ -39,7 +39,7 @@ def main() -> None:
     a = ap.parse_args()
 
     from photoreg.config import load_session, parse_frames
-    from photoreg.io.recording import iter_frames, open_recording
+    from photoreg.io.recording import iter_frames, open_configured
     from photoreg.pipeline import Pipeline
 
     s = load_session(a.session)
@@ -47,7 +47,7 @@ def main() -> None:
     s.lighting.every, s.lighting.asynchronous = a.every, a.asynchronous
     if not s.objects and a.part == "render":
         sys.exit(f"{a.session}: no [[objects]], no render stage to profile")
-    rec = open_recording(s.recording.path, fmt=s.recording.format)
+    rec = open_configured(s.recording)
     indices = parse_frames(a.frames, len(rec))
     pipe = Pipeline(s, rec.intrinsics)
     stage, prof, walls = pipe.render, cProfile.Profile(), []

@@ -34,7 +34,7 @@ import numpy as np  # noqa: E402
 def capture(args) -> int:
     import photoreg.pipeline as pl
     from photoreg.config import Session, parse_frames, validate
-    from photoreg.io.recording import iter_frames, open_recording
+    from photoreg.io.recording import iter_frames, open_configured
 
     calls, solve = [], pl.solve
 
@@ -48,7 +48,7 @@ def capture(args) -> int:
     s.recording.path, s.device, s.frames = args.recording, "cpu", args.frames
     s.lighting.stride, s.lighting.rays, s.lighting.bands = 4, 64, args.bands
     validate(s)
-    rec = open_recording(s.recording.path)
+    rec = open_configured(s.recording)
     pipe = pl.Pipeline(s, rec.intrinsics)
     for frame in iter_frames(rec, parse_frames(s.frames, len(rec))):
         pipe.process(frame)

@@ -243,9 +243,10 @@ def build_parser() -> argparse.ArgumentParser:
                                  "where runs look, as in data/weights/neural_soft; a run does not read --out's folder)")
     t.add_argument("--force", action="store_true", help="train even when weights are cached")
     t.add_argument("--up", choices=("auto",) + AXES, default="auto",
-                   help="the side of each mesh it stands on, by the axis of the mesh's own frame that points up (a run "
-                        "takes the side whose plane the real surface under the object fills, and its frames' notes "
-                        "say which); auto: the axis the session's rotation turns nearest to the world's +z")
+                   help="the side of each mesh it stands on, by the axis of the mesh's own frame that points up "
+                        "(write --up=-y for a negative one); auto: the side a run takes, whose plane the real surface "
+                        "near the object fills, found in the depth of the session's first frames with a pose (its "
+                        "frames' notes say which)")
 
     p = sub.add_parser("batch", help="run many session files, each into its own output folder (local workers or Ray)")
     p.add_argument("sessions", nargs="+", help="session files (sessions/*.toml); their keys, values, recordings "

@@ -275,7 +275,7 @@ def test_native_round_trip(tmp_path):
 
 def test_pose_time_offset_looks_the_poses_up_later_or_earlier(tmp_path):
     """recording.pose_time_offset: the poses of groundtruth.txt at the frames' times + the offset (a motion-capture
-    clock's offset; TUM fr1_rpy's -28 ms, benchmarks/pose_offset.py); the frames' own times stay; refused where each
+    clock's offset, benchmarks/pose_offset.py); the frames' own times stay; refused where each
     frame has its own pose (7-Scenes) and out of range in a session."""
     write_native(tmp_path / "rec")
     rec = open_recording(tmp_path / "rec", pose_time_offset=-0.028)

@@ -196,15 +196,15 @@ def same_recording(out: str | Path, recording: str | Path, rec: Recording | None
     return None
 
 
-def recording_of(recording: str | Path) -> Recording | None:
-    """The recording (photoreg.io.recording); None for a folder that holds ground truth but no recognised recording
-    index."""
+def recording_of(recording: str | Path, pose_time_offset: float = 0.0) -> Recording | None:
+    """The recording (photoreg.io.recording), its poses looked up as a run with that recording.pose_time_offset did;
+    None for a folder that holds ground truth but no recognised recording index."""
     path = Path(recording)
     try:
         detect_format(path)
     except ValueError:
         return None
-    return open_recording(path)
+    return open_recording(path, pose_time_offset=pose_time_offset)
 
 
 def color_files(recording: str | Path) -> list[Path]:
@@ -390,7 +390,10 @@ def score(out: str | Path, recording: str | Path, composite: bool = False) -> di
     sun = true_light(recording)[1] if (Path(recording) / "scene.json").is_file() else None   # a generated one's
     run = load_lighting(out)
     summary = read_summary(out)
-    rec = recording_of(recording)   # opened once: its frame count and timestamps and, for a tracked run, its poses
+    settings = summary.get("settings")
+    offset = settings.get("pose_time_offset", 0.0) if isinstance(settings, dict) else 0.0
+    # opened once: its frame count and timestamps and, for a tracked run, its poses (looked up as the run did)
+    rec = recording_of(recording, offset if isinstance(offset, float) and math.isfinite(offset) else 0.0)
     n = 0 if rec is None else len(rec)
     foreign = sorted(i for i in run.sh if i >= n) if n else []
     if foreign:

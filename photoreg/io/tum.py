@@ -114,17 +114,20 @@ def open_tum(path: Path, native: bool, undistort: bool, pose_time_offset: float 
         depths = [path / depth_rows[j][1] for _, j in pairs]
 
     poses = None
+    if not (path / "groundtruth.txt").is_file() and pose_time_offset:
+        warnings.append("recording.pose_time_offset is set but there is no groundtruth.txt: no poses to offset")
     if (path / "groundtruth.txt").is_file():
         gt_times, gt_poses = read_tum_trajectory(path / "groundtruth.txt")
-        poses = interpolate_poses(gt_times, gt_poses, times + pose_time_offset)
+        looked = times + pose_time_offset
+        poses = interpolate_poses(gt_times, gt_poses, looked)
         notes.append("poses from groundtruth.txt, interpolated to the colour frame times" + (
             f" {pose_time_offset * 1000:+g} ms (recording.pose_time_offset)" if pose_time_offset else ""))
         if len(gt_times) == 1:
             notes.append(f"groundtruth.txt holds one pose: the frames within {MAX_GAP} s of it take it, the others "
                          "have none")
         if all(T is None for T in poses):
-            warnings.append(f"groundtruth.txt gives no frame a pose: no colour frame time ({times[0]:.6f} .. "
-                            f"{times[-1]:.6f}) lies between two of its poses ({gt_times[0]:.6f} .. "
+            warnings.append(f"groundtruth.txt gives no frame a pose: no colour frame time ({looked[0]:.6f} .. "
+                            f"{looked[-1]:.6f}{', pose_time_offset added' if pose_time_offset else ''}) lies between two of its poses ({gt_times[0]:.6f} .. "
                             f"{gt_times[-1]:.6f}) at most {MAX_GAP} s apart (timestamps are seconds)")
     return Recording(path=path, format="native" if native else "tum", intrinsics=calib.intrinsics,
                      timestamps=times, color_files=colors, depth_files=depths, poses=poses,

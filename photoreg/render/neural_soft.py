@@ -44,6 +44,12 @@ def _rotation_scale(obj: VirtualObject) -> tuple[np.ndarray, float]:
     return obj.transform[:3, :3] / scale, scale
 
 
+def plane_tolerance(obj: VirtualObject, offset: float) -> float:
+    """Metres from its ground plane within which a receiver counts as on it: PLANE_TOLERANCE of the object's extent
+    plus the ray offset."""
+    return PLANE_TOLERANCE * float((obj.vertices.max(0) - obj.vertices.min(0)).max()) + offset
+
+
 def support_axis(obj: VirtualObject, points: np.ndarray, normals: np.ndarray, tolerance: float) -> np.ndarray | None:
     """The signed unit axis (3,) of the mesh's own frame that the object stands on: of its six sides, the one whose
     plane (through the mesh's lowest point along the axis turned into the world) holds the most of the real
@@ -122,14 +128,15 @@ def render_neural_soft(inp: RenderInput) -> Layers:
         base.notes += notes + ["neural_soft: no directional light in F, no shadows"]
         return base
     standing = []   # (object, its plane's tolerance, the side it stands on)
-    for obj in inp.scene.objects:
-        tol = PLANE_TOLERANCE * float((obj.vertices.max(0) - obj.vertices.min(0)).max()) + inp.offset
+    for k, obj in enumerate(inp.scene.objects):
+        tol = plane_tolerance(obj, inp.offset)
         up = support_axis(obj, maps.vertex[near], maps.normal[near], tol)
         if up is None:
-            notes.append(f"{obj.source}: no real surface seen along a side of it to stand on: no plane shadow")
+            notes.append(f"neural_soft: object {k} ({obj.source}): no real surface seen along a side of it to stand on "
+                         "(within 25 degrees of a side's axis): no plane shadow")
         else:
             standing.append((obj, tol, up))
-            notes.append(f"neural_soft: {obj.source} stands on its {axis_name(up)} side")
+            notes.append(f"neural_soft: object {k} ({obj.source}) stands on its {axis_name(up)} side")
 
     def ratio_at(pts: np.ndarray, normals: np.ndarray) -> np.ndarray:
         vis = np.ones(len(pts), np.float32)

@@ -169,10 +169,49 @@ def train_mesh(mesh_path: str | Path, vertices: np.ndarray, faces: np.ndarray,
     return path
 
 
+SUPPORT_FRAMES = 8   # frames whose depth `train neural_soft` reads to find the side each object stands on
+SUPPORT_STEP = 4     # ... at every 4th pixel
+
+
+def recorded_support(session, objects: list) -> list[np.ndarray | None]:
+    """The side each placed object stands on as a run finds it (neural_soft.support_axis), from the sensor depth of
+    up to SUPPORT_FRAMES frames of the session's selection with a recorded pose (world points and depth-map normals
+    of every SUPPORT_STEP-th pixel within the texture's reach of the object): the side most of them pick; None for
+    an object none of them shows standing on anything (or a session without recorded poses)."""
+    from photoreg.config import select_frames
+    from photoreg.io.recording import open_configured
+    from photoreg.lighting.samples import depth_normals
+    from photoreg.render.neural_soft import plane_tolerance, support_axis
+    from photoreg.render.neural_soft_weights import axis_name, axis_vector
+    from photoreg.render.shadow_texture import PLANE_SIDE
+
+    rec = open_configured(session.recording)
+    picks: list[list[str]] = [[] for _ in objects]
+    if not (session.recording.use_poses and rec.has_poses):
+        return [None] * len(objects)
+    posed = [i for i in select_frames(session.frames, len(rec), session.recording.path) if rec.poses[i] is not None]
+    offset = session.lighting.ray_offset_voxels * session.reconstruction.voxel_size
+    for i in posed[::max(1, len(posed) // SUPPORT_FRAMES)][:SUPPORT_FRAMES]:
+        f = rec.frame(i)
+        k = f.intrinsics
+        r, c = np.mgrid[0:k.height:SUPPORT_STEP, 0:k.width:SUPPORT_STEP]
+        z, n = f.depth[r, c], depth_normals(f.depth, k, r, c, SUPPORT_STEP)
+        ok = (z > 0) & np.any(n != 0, axis=-1)
+        cam = np.stack([(c - k.cx) / k.fx * z, (r - k.cy) / k.fy * z, z], -1)[ok]
+        world, normals = cam @ f.pose[:3, :3].T + f.pose[:3, 3], n[ok] @ f.pose[:3, :3].T
+        for j, obj in enumerate(objects):
+            lo, hi = obj.vertices.min(0), obj.vertices.max(0)
+            near = np.linalg.norm(np.clip(world, lo, hi) - world, axis=1) <= PLANE_SIDE * float((hi - lo).max())
+            up = support_axis(obj, world[near], normals[near], plane_tolerance(obj, offset))
+            if up is not None:
+                picks[j].append(axis_name(up))
+    return [axis_vector(max(set(p), key=p.count)) if p else None for p in picks]
+
+
 def train_command(args) -> int:
     """`photoreg train neural_soft SESSION.toml`: train (or find cached) weights for every object's mesh, once per
-    mesh and side it stands on (--up: a signed axis of the mesh, or auto, the one its rotation turns nearest to the
-    world's +z); with --out, each mesh's weights end up in that folder (found ones copied there)."""
+    mesh and side it stands on (--up: a signed axis of the mesh, or auto: the side a run finds from the real surface
+    near the object, recorded_support); with --out, each mesh's weights end up in that folder (found ones copied there)."""
     import shutil
 
     from photoreg.config import load_session
@@ -185,9 +224,17 @@ def train_command(args) -> int:
     session = load_session(args.session)
     settings = NeuralSoftSettings()
     done: set[str] = set()
-    for obj in load_scene(session.objects).objects:
-        up = axis_vector(axis_name(np.linalg.solve(obj.transform[:3, :3], [0.0, 0.0, 1.0])) if args.up == "auto"
-                         else args.up)
+    objects = load_scene(session.objects).objects
+    found_sides = recorded_support(session, objects) if args.up == "auto" else [None] * len(objects)
+    for obj, side in zip(objects, found_sides):
+        if args.up != "auto":
+            up = axis_vector(args.up)
+        elif side is not None:
+            up = side
+        else:
+            up = axis_vector(axis_name(np.linalg.solve(obj.transform[:3, :3], [0.0, 0.0, 1.0])))
+            print(f"{obj.source}: no real surface to stand on found near it in the recording's depth: taking the side "
+                  f"its rotation turns nearest to the world's +z, {axis_name(up)} (give --up=SIDE if wrong)")
         key = weights_key(obj.source, settings, up)
         if key in done:   # another object of the same mesh, standing on the same side
             continue
@@ -201,6 +248,6 @@ def train_command(args) -> int:
             print(f"{obj.source}: weights at {found}")
             continue
         standing = obj.local_vertices() @ standing_rotation(up).T
-        print(f"{obj.source} standing on its {args.up if args.up != 'auto' else axis_name(up)} side: "
+        print(f"{obj.source} standing on its {axis_name(up)} side: "
               f"{train_mesh(obj.source, standing, obj.faces, settings, out, up=up)}")
     return 0
