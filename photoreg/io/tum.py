@@ -127,7 +127,8 @@ def open_tum(path: Path, native: bool, undistort: bool, pose_time_offset: float 
                          "have none")
         if all(T is None for T in poses):
             warnings.append(f"groundtruth.txt gives no frame a pose: no colour frame time ({looked[0]:.6f} .. "
-                            f"{looked[-1]:.6f}{', pose_time_offset added' if pose_time_offset else ''}) lies between two of its poses ({gt_times[0]:.6f} .. "
+                            f"{looked[-1]:.6f}{', pose_time_offset added' if pose_time_offset else ''}) lies "
+                            f"between two of its poses ({gt_times[0]:.6f} .. "
                             f"{gt_times[-1]:.6f}) at most {MAX_GAP} s apart (timestamps are seconds)")
     return Recording(path=path, format="native" if native else "tum", intrinsics=calib.intrinsics,
                      timestamps=times, color_files=colors, depth_files=depths, poses=poses,

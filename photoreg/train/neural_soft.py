@@ -211,7 +211,8 @@ def recorded_support(session, objects: list) -> list[np.ndarray | None]:
 def train_command(args) -> int:
     """`photoreg train neural_soft SESSION.toml`: train (or find cached) weights for every object's mesh, once per
     mesh and side it stands on (--up: a signed axis of the mesh, or auto: the side a run finds from the real surface
-    near the object, recorded_support); with --out, each mesh's weights end up in that folder (found ones copied there)."""
+    near the object, recorded_support); with --out, each mesh's weights end up in that folder (found ones copied
+    there)."""
     import shutil
 
     from photoreg.config import load_session
