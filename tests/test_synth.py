@@ -377,6 +377,39 @@ def test_an_interrupted_render_leaves_no_recording(tmp_path, monkeypatch):
     monkeypatch.setattr(gen, "_exposed", exposed)
     assert generate(cfg, log=None) == tmp_path / "rec"
     assert (tmp_path / "rec" / "scene.json").is_file() and not (tmp_path / "rec.partial").exists()
+    assert not (tmp_path / "rec" / gen.PARTIAL_MARK).exists()
+
+
+def test_an_unfinished_render_is_made_on_the_output_s_own_file_system_and_others_are_kept(tmp_path, monkeypatch):
+    """An existing empty --out (a mount point, as docker/compose.yaml's /out) gets its unfinished recording inside it,
+    OUT/.partial, whose files then move within one file system (before: OUT.partial beside it, on the parent's, and
+    the move failed with 'Invalid cross-device link' after the whole render); an interrupted one there is started
+    again. A folder OUT.partial that no run of synth made is refused and kept (before: removed)."""
+    import photoreg.synth.generate as gen
+
+    exposed = gen._exposed
+
+    def interrupted(scene, cfg, layout, i, pose, seed):
+        raise KeyboardInterrupt
+
+    (tmp_path / "mnt").mkdir()
+    cfg = SynthConfig("plane", str(tmp_path / "mnt"), frames=1, width=16, height=12, spp=1, insert_frames="none")
+    monkeypatch.setattr(gen, "_exposed", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        generate(cfg, log=None)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["mnt"]
+    assert [p.name for p in (tmp_path / "mnt").iterdir()] == [gen.PARTIAL]
+    assert (tmp_path / "mnt" / gen.PARTIAL / gen.PARTIAL_MARK).is_file()
+    monkeypatch.setattr(gen, "_exposed", exposed)
+    assert generate(cfg, log=None) == tmp_path / "mnt"
+    assert (tmp_path / "mnt" / "scene.json").is_file() and not (tmp_path / "mnt" / gen.PARTIAL).exists()
+
+    (tmp_path / "y.partial").mkdir()
+    (tmp_path / "y.partial" / "thesis.txt").write_text("precious")
+    cfg = SynthConfig("plane", str(tmp_path / "y"), frames=1, width=16, height=12, spp=1, insert_frames="none")
+    with pytest.raises(ValueError, match=r"y.partial exists and is not an interrupted photoreg synth run's"):
+        generate(cfg, log=None)
+    assert (tmp_path / "y.partial" / "thesis.txt").read_text() == "precious" and not (tmp_path / "y").exists()
 
 
 def test_an_empty_folder_given_as_dot_or_a_link_receives_the_recording(tmp_path, monkeypatch):

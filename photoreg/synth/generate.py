@@ -211,10 +211,15 @@ def rerender_inserts(recording: str | Path) -> dict[int, np.ndarray]:
             for i in meta["insert"]["frames"]}
 
 
+PARTIAL = ".partial"                 # an existing --out folder's unfinished recording is made in OUT/.partial
+PARTIAL_MARK = ".photoreg-synth-partial"   # what marks OUT.partial (or OUT/.partial) as an unfinished recording
+
+
 def generate(cfg: SynthConfig, log: Callable[[str], None] | None = print) -> Path:
     """Render the recording described by `cfg` into cfg.out (which must be absent or empty); returns its path. It is
-    written into OUT.partial and renamed (or its files moved into an empty OUT) when whole, so an interrupted run
-    leaves no folder that passes for a recording (a later run starts OUT.partial again)."""
+    written into OUT.partial (into OUT/.partial where an empty OUT exists: its own file system, a mount point
+    perhaps) and renamed (its files moved into OUT) when whole, so an interrupted run leaves no folder that passes
+    for a recording; a later run removes an unfinished one (marked PARTIAL_MARK) and refuses any other."""
     cfg.validate()
     # the input files' absolute paths in scene.json: rerender_inserts and the command line read them from elsewhere
     cfg = replace(cfg, **{key: str(Path(value).resolve()) for key, value in
@@ -222,14 +227,20 @@ def generate(cfg: SynthConfig, log: Callable[[str], None] | None = print) -> Pat
                           if value and not (key == "env" and value == "procedural")})
     final = Path(cfg.out)
     check_output_dir(final, "--out")
-    if final.exists() and any(final.iterdir()):
-        raise ValueError(f"--out {final}: exists and is not an empty folder; remove it or choose another")
     say = log or (lambda _msg: None)
     resolved = final.resolve()   # "." and a link to a folder have a name
-    out = resolved.with_name(resolved.name + ".partial")
-    if out.exists():
+    # the partial folder on OUT's own file system (an empty OUT may be a mount point): inside an existing OUT
+    out = resolved / PARTIAL if final.exists() else resolved.with_name(resolved.name + ".partial")
+    if final.exists() and any(p != out for p in final.iterdir()):
+        raise ValueError(f"--out {final}: exists and is not an empty folder; remove it or choose another")
+    if out.exists() or out.is_symlink():
+        if not (out / PARTIAL_MARK).is_file():
+            raise ValueError(f"--out {final}: {out} exists and is not an interrupted photoreg synth run's (it holds no "
+                             f"{PARTIAL_MARK}): remove it or choose another --out")
         say(f"removing {out}, an interrupted run's")
         shutil.rmtree(out)
+    out.mkdir(parents=True)
+    (out / PARTIAL_MARK).write_text("an unfinished photoreg synth recording: a later run removes this folder\n")
     t_start = time.perf_counter()
     mi = mitsuba()
     layout, env_image, env_desc, rotation, K, poses = _world(cfg)
@@ -306,8 +317,9 @@ def generate(cfg: SynthConfig, log: Callable[[str], None] | None = print) -> Pat
                                                          else ""))},
                    "images": "insert/NNNNNN.png (sRGB) and .exr (linear, exposure applied); insert_mask/ 255 = virtual object"},
     })
+    (out / PARTIAL_MARK).unlink()
     if final.exists():   # an empty folder (checked above), perhaps "." or a link: the files move into it
-        for entry in out.iterdir():
+        for entry in sorted(out.iterdir(), key=lambda e: e.name == "scene.json"):   # scene.json last: whole
             os.replace(entry, final / entry.name)
         out.rmdir()
     else:
