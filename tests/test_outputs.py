@@ -342,3 +342,15 @@ def test_ctrl_c_ends_a_command_without_a_traceback(tmp_path, monkeypatch, capsys
     err = capsys.readouterr().err
     assert "photoreg run: interrupted" in err and "Traceback" not in err
 
+
+def test_read_exr_takes_a_luminance_image_as_grey_and_names_other_channels(tmp_path):
+    """An environment map or composite saved as Y alone reads as grey; other channels are named (before: KeyError)."""
+    import OpenEXR
+
+    header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
+    OpenEXR.File(header, {"Y": np.full((4, 5), 0.5, np.float32)}).write(str(tmp_path / "y.exr"))
+    assert read_exr(tmp_path / "y.exr").shape == (4, 5, 3) and np.all(read_exr(tmp_path / "y.exr") == 0.5)
+    OpenEXR.File(header, {"Z": np.ones((4, 5), np.float32)}).write(str(tmp_path / "z.exr"))
+    with pytest.raises(ValueError, match=r"z.exr: EXR channels \['Z'\]: expected R, G and B \(or Y\)"):
+        read_exr(tmp_path / "z.exr")
+

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 from pathlib import Path
 
 import numpy as np
@@ -197,6 +198,20 @@ def test_a_run_of_another_recording_is_refused_by_its_timestamps(tmp_path):
     assert f"the run read /data/elsewhere, scored against {rec} (their frames' timestamps agree)" in notes
     (out / "summary.json").write_text(json.dumps({"recording": str(rec)}))
     assert not any("the run read" in n for n in score(out, rec)["lighting"]["notes"])
+    # the generator's recordings share their timestamps: a run lit from recorded poses other than the recording's
+    # is refused by them (before: scored, the summary's note alone telling)
+    gt_poses = "".join(f"{0.1 * i:.6f} 0 0 {1.0 + i} 0 0 0 1\n" for i in range(3))
+    (rec / "groundtruth.txt").write_text(gt_poses)
+    lines = [json.loads(x) for x in (out / "lighting.jsonl").read_text().splitlines()]
+    for i, line in enumerate(lines):
+        line["pose"] = [[1.0, 0, 0, 0], [0, 1.0, 0, 0], [0, 0, 1.0, 1.0 + i], [0, 0, 0, 1.0]]
+    (out / "lighting.jsonl").write_text("".join(json.dumps(x) + "\n" for x in lines))
+    (out / "summary.json").write_text(json.dumps({"recording": "/data/elsewhere", "settings": {"use_poses": True}}))
+    assert score(out, rec)["lighting"]["n_scored"] == 2
+    lines[1]["pose"][0][3] = 0.5
+    (out / "lighting.jsonl").write_text("".join(json.dumps(x) + "\n" for x in lines))
+    with pytest.raises(ValueError, match=r"frame 1's pose is not .*rec's \(1 of the run's frames differ\)"):
+        score(out, rec)
 
 
 def test_score_command_prints_and_writes_json(tmp_path, capsys):
@@ -396,4 +411,56 @@ def test_a_tracked_run_is_scored_in_the_recording_s_world(tmp_path):
             "median"]), name
     # the frames the runs were asked for (summary.json), not the recording's 40, are what may be missing
     assert all(v["n_frames"] == 4 and v["n_missing"] == 0 and v["nonfinite_fraction"] == 0 for v in scores.values())
+    # a broken first pose (singular) is passed over: the next frame relates the worlds (before: 'Singular matrix')
+    path = tmp_path / "tracked" / "lighting.jsonl"
+    lines = [json.loads(x) for x in path.read_text().splitlines()]
+    lines[0]["pose"] = [[0.0] * 4] * 4
+    path.write_text("".join(json.dumps(x) + "\n" for x in lines))
+    again = score(tmp_path / "tracked", demo)["lighting"]
+    assert any("by frame 1" in n for n in again["notes"]), again["notes"]
+
+
+def test_scores_stay_finite_and_honest_on_broken_input(tmp_path):
+    """A negated estimate scores as no signal (si-RMSE 1; before, as well as the truth), a tiny or huge scale of the
+    truth scores 0 (before: 37.9 degrees, and 1.0 with an overflow at 1e160); composites: an insert frame showing no
+    object is left out, not a perfect score, one with a NaN pixel near the object is named, not NaN in strict JSON,
+    one of another size is an error naming its file; malformed lighting.jsonl fields are named."""
+    gt = sun_sky_gt()
+    normals = metrics.UPPER_NORMALS
+    assert metrics.irradiance_si_rmse(-gt, gt, normals) == pytest.approx(1.0)
+    for scale in (1e-13, 1e160):
+        assert metrics.irradiance_si_rmse(scale * gt, gt, normals) == pytest.approx(0.0, abs=1e-9)
+        assert metrics.direction_error_deg(scale * gt, gt) == pytest.approx(0.0, abs=1e-6)
+
+    camera, truth, mask = synthetic_insert()
+    out, rec = write_run(tmp_path, gt, [gt] * 4, n_rgb=4)
+    for i in range(4):
+        write_png_rgb(rec / "rgb" / f"{i:06d}.png", linear_to_srgb(camera))
+    for i, m in ((1, mask), (2, mask), (3, np.zeros_like(mask))):
+        write_exr(rec / "insert" / f"{i:06d}.exr", truth)
+        write_png_rgb(rec / "insert_mask" / f"{i:06d}.png", np.repeat(m[..., None] * 255, 3, axis=2).astype(np.uint8))
+    broken = truth.copy()
+    broken[mask] = np.nan
+    for i, img in ((1, truth), (2, broken), (3, truth)):
+        write_exr(out / "composite_linear" / f"{i:06d}.exr", img)
+    res = score(out, rec, composite=True)["composite"]
+    assert res["n_inserts"] == 3 and res["n_scored"] == 1 and [r["frame"] for r in res["per_frame"]] == [1, 2]
+    assert any("[3] show no object" in n for n in res["notes"])
+    assert any("[2] holds non-finite" in n for n in res["notes"])
+    assert res["flicker"]["nonfinite_frames"] == [2] and np.isfinite(res["flicker"]["composite"])
+    assert cli_main(["score", str(out), "--gt", str(rec), "--composite", "--json", str(tmp_path / "s.json")]) == 0
+    json.loads((tmp_path / "s.json").read_text(), parse_constant=lambda c: pytest.fail(f"{c} in strict JSON"))
+    write_exr(out / "composite_linear" / "000001.exr", truth[:60, :80])
+    with pytest.raises(ValueError, match=r"000001.exr: 80x60, but the ground truth's frame 1 is 160x120"):
+        score(out, rec, composite=True)
+
+    for bad, message in (('"bands": "5"', "'bands' must be an integer in 1..16, got '5'"),
+                         ('"diagnostics": [1]', "'diagnostics' must be an object, got list"),
+                         ('"diagnostics": {"sun": [0, 0, 1]}', "'diagnostics.sun' must be an object or null")):
+        (out / "lighting.jsonl").write_text('{"frame": 0, "sh": null, ' + bad + "}\n")
+        with pytest.raises(ValueError, match=re.escape(f"lighting.jsonl:1: {message}")):
+            score(out, rec)
+    (out / "lighting.jsonl").write_bytes(b'{"frame": 0, "sh": null}\n\xff\n')
+    with pytest.raises(ValueError, match=r"lighting.jsonl:2: malformed JSON"):
+        score(out, rec)
 

@@ -357,6 +357,16 @@ def test_bad_input_is_named(tmp_path, capsys, argv, message):
     assert message in capsys.readouterr().err
 
 
+def test_a_mesh_without_area_is_named(tmp_path, capsys):
+    """A mesh whose triangles are all degenerate: named, before any frame (before: a ZeroDivisionError traceback, or a
+    recording whose insert masks were empty and whose session.toml `photoreg run` then refused)."""
+    mesh = tmp_path / "line.obj"
+    mesh.write_text("v 0 0 0\nv 1 0 0\nv 2 0 0\nf 1 2 3\n")
+    assert cli.main(["synth", "plane", "--out", str(tmp_path / "o"), "--insert-mesh", str(mesh), "--frames", "1",
+                     "--size", "16x12", "--spp", "1"]) == 2
+    assert f"{mesh}: mesh has no area" in capsys.readouterr().err and not (tmp_path / "o").exists()
+
+
 def test_an_interrupted_render_leaves_no_recording(tmp_path, monkeypatch):
     """Interrupted at frame 1 (Ctrl-C), the render leaves OUT.partial, not OUT: nothing that passes for a recording;
     the next run starts the partial folder again and renames it when whole."""

@@ -4,8 +4,8 @@ Lighting is compared only up to scale: the estimate is relative to the scene's u
 (DESIGN.md), so every lighting metric here is invariant to a positive scale of the estimate.
   * direction_error_deg: angle between the dominant directions (the l=1 band of luminance).
   * si_rmse: scale-invariant relative RMSE of irradiance at a fixed set of normals, dimensionless:
-    alpha = argmin ||alpha E_est - E_gt||, si_rmse = ||alpha E_est - E_gt||_rms / ||E_gt||_rms.
-    0 is perfect; 1 is what an estimate with no usable signal (alpha = 0) scores.
+    alpha = argmin over alpha >= 0 of ||alpha E_est - E_gt||, si_rmse = ||alpha E_est - E_gt||_rms / ||E_gt||_rms.
+    0 is perfect; 1 is what an estimate with no usable signal (alpha = 0) scores, a negated one included.
   * colour_error_deg: angle between the mean RGB irradiance vectors (white balance of the light).
   * flicker: temporal stability of a sequence of estimates (no ground truth needed), see flicker().
 """
@@ -27,7 +27,9 @@ UPPER_NORMALS = SPHERE_NORMALS[SPHERE_NORMALS[:, 2] > 0]  # world z up
 
 
 def _angle_deg(u: np.ndarray, v: np.ndarray) -> float:
-    """Angle between two non-zero vectors in degrees (atan2 form: accurate near 0 and 180)."""
+    """Angle between two non-zero vectors in degrees (atan2 form: accurate near 0 and 180; each scaled by its largest
+    component first, so that neither a tiny nor a huge one underflows or overflows)."""
+    u, v = (np.asarray(x, np.float64) / np.max(np.abs(x)) for x in (u, v))
     return math.degrees(math.atan2(float(np.linalg.norm(np.cross(u, v))), float(np.dot(u, v))))
 
 
@@ -41,14 +43,15 @@ def has_direction(sh_rgb: np.ndarray) -> bool:
     """Whether the l=1 band of luminance is finite and non-zero (relative to band 0)."""
     v = l1_vector(sh_rgb)
     scale = max(abs(float(sh.luminance(sh_rgb)[0])), 1e-300)
-    return bool(np.isfinite(v).all() and np.linalg.norm(v) > 1e-9 * scale)
+    return bool(np.isfinite(v).all() and np.linalg.norm(v / scale) > 1e-9)
 
 
 def direction_error_deg(sh_est: np.ndarray, sh_gt: np.ndarray) -> float:
-    """Angle between dominant light directions; NO_DIRECTION_DEG when the estimate has none."""
+    """Angle between dominant light directions (the estimate's l=1 vector at any positive scale); NO_DIRECTION_DEG
+    when the estimate has none."""
     if not has_direction(sh_est):
         return NO_DIRECTION_DEG
-    return _angle_deg(sh.dominant_direction(sh_est), sh.dominant_direction(sh_gt))
+    return _angle_deg(l1_vector(sh_est), sh.dominant_direction(sh_gt))
 
 
 def light_direction_error_deg(traced, true_direction) -> float:
@@ -62,14 +65,16 @@ def light_direction_error_deg(traced, true_direction) -> float:
 
 
 def scale_invariant_rmse(est: np.ndarray, gt: np.ndarray) -> float:
-    """||alpha est - gt||_rms / ||gt||_rms with the least-squares alpha over all values (0 if gt is 0)."""
+    """||alpha est - gt||_rms / ||gt||_rms with the least-squares alpha >= 0 over all values (0 if gt is 0); both
+    scaled by their largest magnitude first (the result does not change; their products stay finite)."""
     e = np.asarray(est, dtype=np.float64).ravel()
     g = np.asarray(gt, dtype=np.float64).ravel()
+    e, g = (x / m if (m := float(np.max(np.abs(x), initial=0.0))) > 0 and math.isfinite(m) else x for x in (e, g))
     gg = float(g @ g)
     if gg <= 0:
         return 0.0 if not e.any() else 1.0
     ee = float(e @ e)
-    alpha = float(e @ g) / ee if ee > 0 else 0.0
+    alpha = max(float(e @ g) / ee, 0.0) if ee > 0 else 0.0
     r = alpha * e - g
     return math.sqrt(max(float(r @ r), 0.0) / gg)
 

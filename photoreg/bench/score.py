@@ -59,11 +59,15 @@ def load_gt(recording: str | Path) -> np.ndarray:
     if not path.is_file():
         raise FileNotFoundError(f"{path}: no ground-truth lighting (lighting_gt.json) in {recording}")
     try:
-        obj = json.loads(path.read_text())
+        obj = json.loads(path.read_text(encoding="utf-8"))
     except json.JSONDecodeError as e:
         raise ValueError(f"{path}: malformed JSON at line {e.lineno}: {e.msg}") from None
+    except UnicodeDecodeError as e:
+        raise ValueError(f"{path}: not UTF-8 text (byte {e.start})") from None
     if not isinstance(obj, dict) or "sh" not in obj:
         raise ValueError(f"{path}: expected an object with 'bands' and 'sh'")
+    if not np.any(_sh_array(obj["sh"], None, str(path))):
+        raise ValueError(f"{path}: the ground-truth lighting is zero (no light to score against)")
     if obj.get("frame", "world") != "world":
         raise ValueError(f"{path}: ground truth must be in the world frame, got {obj['frame']!r}")
     gt = _sh_array(obj["sh"], obj.get("bands"), str(path))
@@ -130,7 +134,7 @@ def load_lighting(out: str | Path) -> RunLighting:
         raise FileNotFoundError(f"{path}: no per-frame lighting (lighting.jsonl) in {out}")
     run = RunLighting({}, {}, {}, {})
     lines: dict[int, int] = {}
-    with path.open() as f:
+    with path.open(encoding="utf-8", errors="replace") as f:   # a stray byte: the line's JSON error names it
         for lineno, line in enumerate(f, 1):
             if not line.strip():
                 continue
@@ -147,11 +151,18 @@ def load_lighting(out: str | Path) -> RunLighting:
             if frame in run.sh:
                 raise ValueError(f"{where}: frame {frame} already given on line {lines[frame]}")
             bands = obj.get("bands")
+            if bands is not None and (isinstance(bands, bool) or not isinstance(bands, int) or not 1 <= bands <= 16):
+                raise ValueError(f"{where}: 'bands' must be an integer in 1..16, got {bands!r}")
             if obj["sh"] is None:
                 run.sh[frame] = np.full((3, (bands or 1) ** 2), np.nan)
             else:
                 run.sh[frame] = _sh_array(obj["sh"], bands, where)
-            light = (obj.get("diagnostics") or {}).get("sun")
+            diagnostics = obj.get("diagnostics") or {}
+            if not isinstance(diagnostics, dict):
+                raise ValueError(f"{where}: 'diagnostics' must be an object, got {type(diagnostics).__name__}")
+            light = diagnostics.get("sun")
+            if light is not None and not isinstance(light, dict):
+                raise ValueError(f"{where}: 'diagnostics.sun' must be an object or null, got {type(light).__name__}")
             direction = _numbers(light.get("direction") if isinstance(light, dict) else None, (3,), where,
                                  "diagnostics.sun.direction")
             run.lights[frame] = None if direction is None else direction.tolist()
@@ -299,8 +310,13 @@ def insert_truth(recording: str | Path) -> list[InsertTruth]:
         if i >= len(rgb):
             raise FileNotFoundError(f"{p}: frame {i} is not a frame of the recording {recording} "
                                     f"({len(rgb)} frames)")
-        mask = _read_mask(recording / "insert_mask" / f"{p.stem}.png")
-        out.append(InsertTruth(i, read_exr(p), mask, metrics.roi_mask(mask), srgb_to_linear(read_rgb(rgb[i]))))
+        mask_file = recording / "insert_mask" / f"{p.stem}.png"
+        mask, gt, camera = _read_mask(mask_file), read_exr(p), srgb_to_linear(read_rgb(rgb[i]))
+        for what, shape in ((mask_file, mask.shape), (rgb[i], camera.shape[:2])):
+            if shape != gt.shape[:2]:
+                raise ValueError(f"{what}: {shape[1]}x{shape[0]}, but the insert render {p} is "
+                                 f"{gt.shape[1]}x{gt.shape[0]}")
+        out.append(InsertTruth(i, gt, mask, metrics.roi_mask(mask), camera))
     return out
 
 
@@ -310,23 +326,34 @@ def score_composites(out: str | Path, recording: str | Path) -> dict:
     truths = insert_truth(recording)
     with_flip = metrics.flip_available()
     notes = [] if with_flip else ["FLIP skipped: flip_evaluator is not installed"]
-    per_frame, missing = [], []
+    per_frame, missing, empty, broken = [], [], [], []
     for t in truths:
+        if not t.mask.any():   # no object in view: nothing to score, not a perfect score
+            empty.append(t.frame)
+            continue
         row = {"frame": t.frame, **{f"baseline_{k}": v for k, v in t.baseline(with_flip).items()}}
         lin, png = out / "composite_linear" / f"{t.frame:06d}.exr", out / "composite" / f"{t.frame:06d}.png"
-        if lin.is_file():
-            est = read_exr(lin)
-        elif png.is_file():
-            est = srgb_to_linear(read_rgb(png))
-        else:
-            est = None
+        source = lin if lin.is_file() else png if png.is_file() else None
+        est = None if source is None else read_exr(lin) if source == lin else srgb_to_linear(read_rgb(png))
+        if est is None:
             missing.append(t.frame)
-        if est is not None:
+        elif est.shape != t.gt.shape:
+            raise ValueError(f"{source}: {est.shape[1]}x{est.shape[0]}, but the ground truth's frame {t.frame} is "
+                             f"{t.gt.shape[1]}x{t.gt.shape[0]}: is --gt the recording the run read?")
+        elif not np.isfinite(est[t.roi]).all():
+            broken.append(t.frame)
+        else:
             row.update(metrics.composite_metrics(est, t.gt, t.roi, with_flip))
         per_frame.append(row)
+    if empty:
+        notes.append(f"insert frame(s) {empty} show no object (empty insert_mask): left out")
     if missing:
         notes.append(f"no composite for insert frame(s) {missing}: only the baseline is scored there")
-    return {"n_inserts": len(truths), "n_scored": len(truths) - len(missing), "roi_dilation_px": metrics.ROI_DILATION_PX,
+    if broken:
+        notes.append(f"the composite of insert frame(s) {broken} holds non-finite pixels near the object: only the "
+                     "baseline is scored there")
+    return {"n_inserts": len(truths), "n_scored": len(per_frame) - len(missing) - len(broken),
+            "roi_dilation_px": metrics.ROI_DILATION_PX,
             "flip": with_flip,
             "metrics": {k: metrics.summarize(r.get(k) for r in per_frame)
                         for k in COMPOSITE_METRICS if with_flip or "flip" not in k},
@@ -334,17 +361,27 @@ def score_composites(out: str | Path, recording: str | Path) -> dict:
 
 
 def composite_flicker(out: str | Path, recording: str | Path) -> dict | None:
-    """Flicker E (metrics.image_flicker) of the run's consecutive composites (composite_linear/) over
-    the pixels the insertion changed in any of them, beside the camera frames' own flicker on the same
-    pixels (sensor or render noise sets that floor); None with fewer than two composites."""
-    files = sorted(p for p in (Path(out) / "composite_linear").glob("*.exr") if p.stem.isdigit())
+    """Flicker E (metrics.image_flicker) of the run's consecutive composites (composite_linear/; of the recording's
+    frames) over the pixels the insertion changed in any of them, beside the camera frames' own flicker on the same
+    pixels (sensor or render noise sets that floor); `nonfinite_frames`: composites whose non-finite pixels counted as
+    black; None with fewer than two composites."""
     rgb = color_files(recording)
-    if len(files) < 2 or not rgb:   # no camera frames: a folder of ground truth alone
+    files = sorted(p for p in (Path(out) / "composite_linear").glob("*.exr")
+                   if p.stem.isdigit() and int(p.stem) < len(rgb))
+    if len(files) < 2:   # (no camera frames: a folder of ground truth alone)
         return None
     comps = [read_exr(p) for p in files]
     cams = [srgb_to_linear(read_rgb(rgb[int(p.stem)])) for p in files]
+    broken = []
+    for p, c, cam in zip(files, comps, cams):
+        if c.shape != cam.shape:
+            raise ValueError(f"{p}: {c.shape[1]}x{c.shape[0]}, but its camera frame {rgb[int(p.stem)]} is "
+                             f"{cam.shape[1]}x{cam.shape[0]}: is --gt the recording the run read?")
+        if not np.isfinite(c).all():   # counted as black there: flicker, not NaN
+            broken.append(int(p.stem))
+            np.nan_to_num(c, copy=False, nan=0.0, posinf=0.0, neginf=0.0)
     region = metrics.changed_region(comps, cams)
-    return {"frames": [int(p.stem) for p in files], "pixels": int(region.sum()),
+    return {"frames": [int(p.stem) for p in files], "nonfinite_frames": broken, "pixels": int(region.sum()),
             "composite": metrics.image_flicker(comps, region), "camera": metrics.image_flicker(cams, region)}
 
 
@@ -370,8 +407,9 @@ def tracked_to_world(summary: dict, out: str | Path, recording: str | Path, rec:
     if told is True:
         return None
     recorded = None if rec is None else rec.poses
-    for i in sorted(poses):
-        if poses[i] is not None and recorded is not None and i < len(recorded) and recorded[i] is not None:
+    for i in sorted(poses):   # the first frame with both (a broken pose of the run's, not a rotation, passed over)
+        rigid = poses[i] is not None and np.isfinite(poses[i]).all() and abs(np.linalg.det(poses[i][:3, :3]) - 1) < 1e-3
+        if rigid and recorded is not None and i < len(recorded) and recorded[i] is not None:
             turn = recorded[i] @ np.linalg.inv(poses[i])
             if told is None and np.allclose(turn, np.eye(4), atol=1e-4):
                 return None
@@ -407,6 +445,12 @@ def score(out: str | Path, recording: str | Path, composite: bool = False) -> di
         R, anchor = turn
         estimates = {i: sh.rotate(e, R) for i, e in estimates.items()}
         lights = {i: None if d is None else (R @ np.asarray(d, np.float64)).tolist() for i, d in lights.items()}
+    elif rec is not None and rec.poses is not None:   # lit from the recorded poses: they are the recording's
+        off = [i for i, P in sorted(run.poses.items()) if P is not None and i < n and rec.poses[i] is not None
+               and not np.allclose(P, rec.poses[i], atol=1e-4)]
+        if off:
+            raise ValueError(f"{out}: frame {off[0]}'s pose is not {recording}'s ({len(off)} of the run's frames "
+                             "differ): is --gt the recording it ran on?")
     result = {"out": str(out), "recording": str(recording),
               "lighting": score_lighting(estimates, gt, selected_frames(summary, n), lights, sun)}
     if moved is not None:

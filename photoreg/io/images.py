@@ -178,13 +178,18 @@ def write_exr(path: str | os.PathLike, rgb: np.ndarray, half: bool = False) -> N
 
 
 def read_exr(path: str | os.PathLike) -> np.ndarray:
+    """An OpenEXR image -> HxWx3 float32 RGB (a luminance-only Y image as grey); ValueError naming the file and its
+    channels otherwise."""
     import OpenEXR
 
     with OpenEXR.File(str(path)) as f:
         ch = f.channels()
         if "RGB" in ch:
             return np.asarray(ch["RGB"].pixels, dtype=np.float32)
-        return np.stack([np.asarray(ch[c].pixels, dtype=np.float32) for c in "RGB"], axis=-1)
+        names = "RGB" if all(c in ch for c in "RGB") else "YYY" if "Y" in ch else None
+        if names is None:
+            raise ValueError(f"{path}: EXR channels {sorted(ch)}: expected R, G and B (or Y)")
+        return np.stack([np.asarray(ch[c].pixels, dtype=np.float32) for c in names], axis=-1)
 
 
 def read_hdr(path: str | os.PathLike) -> np.ndarray:

@@ -109,6 +109,8 @@ def load_mesh(path: str | None, extent: float) -> trimesh.Trimesh:
         raise ValueError(f"{path}: not a readable mesh ({e})") from None
     if not isinstance(m, trimesh.Trimesh) or len(m.faces) == 0:
         raise ValueError(f"{path}: no triangles")
+    if not (np.isfinite(m.vertices).all() and m.area > 0):
+        raise ValueError(f"{path}: mesh has no area (every triangle degenerate) or non-finite vertices")
     m.apply_transform(placement([0, 0, 0], rotation_xyz_deg=(90, 0, 0)))  # OBJ convention +y up -> +z up
     lo, hi = m.bounds
     m.apply_translation([-(lo[0] + hi[0]) / 2, -(lo[1] + hi[1]) / 2, -lo[2]])
