@@ -129,6 +129,7 @@ def test_the_true_insertion_blurred_matches_mitsuba_s(pan):
     Mitsuba's blurred insert render; a share twice too long does worse than the right one."""
     meta = json.loads((pan["blurred"] / "scene.json").read_text())
     assert meta["camera"]["shutter_s"] == 0.016 and "--shutter 0.016" in meta["command"]
+    assert "at 32 samples per pixel each (256 in all)" in meta["camera"]["shutter"]   # what was rendered, said
     sharp, blurred = open_recording(pan["sharp"]), open_recording(pan["blurred"])
     f1, f2, b2 = sharp.frame(3), sharp.frame(4), blurred.frame(4)
     layers = layers_of(read_exr(pan["sharp"] / "insert" / "000004.exr"), srgb_to_linear(f2.color),

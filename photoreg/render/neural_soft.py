@@ -120,13 +120,13 @@ def render_neural_soft(inp: RenderInput) -> Layers:
         raise ValueError("neural_soft: RenderInput.scene is missing (the renderer works per object)")
     base = render_none(inp)
     light = inp.light
-    maps = inp.maps
-    extent = float((inp.bounds[1] - inp.bounds[0]).max())
-    near = near_objects(maps, box_distance2(maps, inp.bounds), PLANE_SIDE * extent)
     notes = list(light.notes)
     if float(light.opacity.max()) <= 0.0:   # nothing to shadow: no net to load or train
         base.notes += notes + ["neural_soft: no directional light in F, no shadows"]
         return base
+    maps = inp.maps
+    extent = float((inp.bounds[1] - inp.bounds[0]).max())
+    near = near_objects(maps, box_distance2(maps, inp.bounds), PLANE_SIDE * extent)
     standing = []   # (object, its plane's tolerance, the side it stands on)
     for k, obj in enumerate(inp.scene.objects):
         tol = plane_tolerance(obj, inp.offset)

@@ -181,8 +181,13 @@ def _exposed(scene: MitsubaScene, cfg: SynthConfig, layout, i: int, pose: np.nda
     m = SHUTTER_SAMPLES
     at = i + cfg.shutter * FPS * ((np.arange(m) + 0.5) / m - 0.5)
     poses = camera_path(cfg.camera, cfg.frames, layout.rig, cfg.seed, at=at)
-    spp = max(1, cfg.spp // m)
+    spp = shutter_spp(cfg.spp)
     return np.mean([scene.render(p, spp, (seed + k * 7919) % 2**32) for k, p in enumerate(poses)], axis=0)
+
+
+def shutter_spp(spp: int) -> int:
+    """Samples per pixel of each of a shuttered frame's SHUTTER_SAMPLES renders: the frame's spp shared, at least 1."""
+    return max(1, spp // SHUTTER_SAMPLES)
 
 
 def _insert_scene(cfg: SynthConfig, layout, env_image: np.ndarray, rotation: np.ndarray, K) -> MitsubaScene:
@@ -283,6 +288,10 @@ def generate(cfg: SynthConfig, log: Callable[[str], None] | None = print) -> Pat
                 tmp.write_bytes(data)
         write_text(out / "object.obj", text)
         write_text(out / "session.toml", _session_toml(layout.insert))
+    each = shutter_spp(cfg.spp)
+    shutter_text = (f"colour and inserts the mean of {SHUTTER_SAMPLES} renders over the shutter time at {each} samples "
+                    f"per pixel each ({SHUTTER_SAMPLES * each} in all), centred on the frame's time and pose; depth at "
+                    "that instant")
     write_json(out / "scene.json", {
         "generator": {"name": "photoreg synth", "version": GENERATOR_VERSION,
                       "photoreg": importlib.metadata.version("photoreg"),
@@ -299,9 +308,7 @@ def generate(cfg: SynthConfig, log: Callable[[str], None] | None = print) -> Pat
         "camera": {"path": cfg.camera, "rig": layout.rig.to_json(), "hfov_deg": 60.0, "fps": FPS,
                    "pose": "camera-to-world, OpenCV camera frame (x right, y down, z forward)",
                    "shutter_s": cfg.shutter,
-                   "shutter": (f"colour and inserts the mean of {SHUTTER_SAMPLES} renders over the shutter time, "
-                               "centred on the frame's time and pose; depth at that instant") if cfg.shutter else
-                              "an instant"},
+                   "shutter": shutter_text if cfg.shutter else "an instant"},
         "render": {"integrator": "path", "max_depth": cfg.max_depth, "spp": cfg.spp, "seed": cfg.seed,
                    "reconstruction_filter": "box"},
         "exposure": exposure,
