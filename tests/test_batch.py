@@ -191,6 +191,47 @@ def test_ctrl_c_stops_the_batch_and_reports_what_finished(tmp_path):
         time.sleep(0.2)
 
 
+def test_a_dead_worker_s_sessions_run_again(tmp_path, recording):
+    """A worker process killed mid-batch (SIGKILL: out of memory, an operator) breaks the pool and every session in
+    it: those run again once in new worker processes and finish (before: each of them failed with BrokenProcessPool,
+    the queued ones too, which had not started)."""
+    import os
+    import signal
+    import subprocess
+
+    paths = [write_session(tmp_path, name, recording) for name in ("a", "b", "c")]
+    proc = subprocess.Popen([sys.executable, "-m", "photoreg", "batch", *map(str, paths), "--workers", "1",
+                             "--out", str(tmp_path / "report")], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True, cwd=Path(__file__).resolve().parents[1])
+    try:
+        lines = []
+        for line in proc.stderr:   # a session at work: its worker process killed
+            lines.append(line)
+            if ": frame " in line:
+                break
+        workers = [int(p) for p in os.listdir("/proc") if p.isdigit() and _parent(int(p)) == proc.pid
+                   and b"spawn_main" in Path(f"/proc/{p}/cmdline").read_bytes()]
+        assert len(workers) == 1, workers
+        os.kill(workers[0], signal.SIGKILL)
+        out, err = proc.communicate(timeout=300)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    err = "".join(lines) + err
+    assert proc.returncode == 0, err
+    assert "a worker process died; running " in err and "again in new worker processes" in err
+    sessions = json.loads((tmp_path / "report" / "batch_summary.json").read_text())["sessions"]
+    assert [r["status"] for r in sessions] == ["ok"] * 3 and max(r["attempts"] for r in sessions) == 2, sessions
+
+
+def _parent(pid: int) -> int | None:
+    """The parent process id of `pid` (Linux /proc), None where it is gone."""
+    try:
+        return int(Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[1])
+    except (OSError, IndexError, ValueError):
+        return None
+
+
 def test_invalid_sessions_reported_before_any_work(tmp_path, recording, capsys):
     good = write_session(tmp_path, "good", recording)
     unknown = write_session(tmp_path, "unknown", recording, colour='"red"')

@@ -18,6 +18,7 @@ import queue
 import signal
 import sys
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+from concurrent.futures.process import BrokenProcessPool
 
 from ..device import exit_with_parent
 from .runner import BatchInterrupted, BatchProgress, SessionTask, failed_result, run_one
@@ -118,8 +119,9 @@ def _drain(q, progress: BatchProgress) -> None:
 
 
 def run_local(tasks: list[SessionTask], progress: BatchProgress, workers: int | None = None) -> list[dict]:
-    """Run the sessions in `workers` processes (default: default_workers); results in task order. A worker
-    process that dies fails its session (and, the pool being broken, those still queued)."""
+    """Run the sessions in `workers` processes (default: default_workers); results in task order. A worker process
+    that dies (killed, out of memory) breaks the pool and every session in it: those are run again once in a new
+    pool (as the Ray executor retries a task), and fail with the error where it dies again."""
     memory = assign_devices(tasks)
     workers = min(workers or default_workers(os.cpu_count() or 1, memory, available_memory()), len(tasks))
     print(f"batch: {len(tasks)} session(s) on {workers} worker process(es)"
@@ -127,22 +129,43 @@ def run_local(tasks: list[SessionTask], progress: BatchProgress, workers: int | 
     ctx = mp.get_context("spawn")
     q = ctx.Queue()
     results: dict[int, dict] = {}
-    pool = ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_init_worker,
-                               initargs=(q, cpu_share(workers)))
+
+    def new_pool() -> ProcessPoolExecutor:
+        return ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_init_worker,
+                                   initargs=(q, cpu_share(workers)))
+
+    pool = new_pool()
     pending, stopped = {}, False
+
+    def settle(f) -> SessionTask | None:
+        """Record the result of finished future f; its session instead, to run again, where its worker died first."""
+        t, attempt = pending.pop(f)
+        try:
+            r = f.result()
+        except BrokenProcessPool as e:   # a worker process died: every session of the pool lands here
+            if attempt == 1:
+                return t
+            r = failed_result(t, RuntimeError(f"its worker process died, twice ({e})"))
+        except Exception as e:  # noqa: BLE001 - a failure the worker could not report as a result
+            r = failed_result(t, e)
+        r["attempts"] = attempt
+        results[t.index] = r
+        progress.finished(r)
+        return None
+
     try:
-        pending = {pool.submit(_run, t): t for t in tasks}
+        pending = {pool.submit(_run, t): (t, 1) for t in tasks}
         while pending:
             finished, _ = wait(pending, timeout=0.25, return_when=FIRST_COMPLETED)
             _drain(q, progress)
-            for f in finished:
-                t = pending.pop(f)
-                try:
-                    r = f.result()
-                except Exception as e:  # noqa: BLE001 - the worker process died (BrokenProcessPool)
-                    r = failed_result(t, e)
-                results[t.index] = r
-                progress.finished(r)
+            again = [t for t in map(settle, finished) if t is not None]
+            if again:   # the pool is broken: its other sessions end alike, at once
+                again += [t for t in map(settle, wait(pending)[0]) if t is not None]
+                print(f"batch: a worker process died; running {', '.join(t.name for t in again)} again in new "
+                      "worker processes", file=sys.stderr, flush=True)
+                pool.shutdown(wait=True)
+                pool = new_pool()
+                pending = {pool.submit(_run, t): (t, 2) for t in again}
     except KeyboardInterrupt:
         # the queued sessions cancelled, the running ones' workers stopped (their outputs are written whole or not
         # at all, without the completion marker: --resume runs them again); Python 3.14's terminate_workers()
@@ -152,7 +175,7 @@ def run_local(tasks: list[SessionTask], progress: BatchProgress, workers: int | 
         pool.shutdown(wait=False, cancel_futures=True)
         for process in processes:
             process.terminate()
-        for t in pending.values():
+        for t, _ in pending.values():
             results[t.index] = failed_result(t, KeyboardInterrupt("interrupted (Ctrl-C) before it finished"))
         raise BatchInterrupted([results[t.index] for t in tasks]) from None
     finally:
