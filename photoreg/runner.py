@@ -12,7 +12,7 @@ from typing import Callable
 import numpy as np
 
 from .config import Session, load_session, select_frames, validate
-from .io.atomic import check_output_dir, write_json
+from .io.atomic import check_output_dir, hold_folder, write_json
 from .io.images import linear_to_srgb, write_exr, write_png_rgb
 from .io.poses import write_tum_trajectory
 from .io.video import VideoOut, frame_rate
@@ -189,8 +189,9 @@ def writer_threads() -> int:
 def run_session(s: Session, quiet: bool = False, on_frame: Callable[[int, int], None] | None = None) -> dict:
     """Process a session; returns the summary (also written to summary.json).
 
-    on_frame(frames done, frames selected) is called after each frame (batch progress from worker processes)."""
-    from .io.recording import ReadAhead, open_configured
+    on_frame(frames done, frames selected) is called after each frame (batch progress from worker processes). The
+    output folder is held (io.atomic.hold_folder) while the frames run: another run into it is refused."""
+    from .io.recording import open_configured
     from .pipeline import Pipeline
 
     rec = open_configured(s.recording)
@@ -202,6 +203,23 @@ def run_session(s: Session, quiet: bool = False, on_frame: Callable[[int, int], 
     check_output_dir(out, "--out / [output] dir")
     pipe = Pipeline(s, rec.intrinsics)   # bad objects fail here, before the output folder is touched
     out.mkdir(parents=True, exist_ok=True)
+    try:
+        lock = hold_folder(out, "--out / [output] dir")
+    except ValueError:
+        pipe.close()
+        raise
+    try:
+        return _run_frames(s, rec, indices, pipe, out, quiet, on_frame)
+    finally:
+        os.close(lock)
+
+
+def _run_frames(s: Session, rec, indices: list[int], pipe, out: Path, quiet: bool,
+                on_frame: Callable[[int, int], None] | None) -> dict:
+    """run_session's frames into the output folder `out` it holds: lighting.jsonl, the pictures and composites,
+    summary.json."""
+    from .io.recording import ReadAhead
+
     skipped: list[dict] = []
     results: list[FrameDone] = []
     stage_ms = StageTimes()

@@ -248,12 +248,15 @@ def test_invalid_sessions_reported_before_any_work(tmp_path, recording, capsys):
     corrupt = write_session(tmp_path, "corrupt", corrupt_rec)
     none = write_session(tmp_path, "none", recording)   # selects no frame of the recording's 4
     none.write_text(none.read_text().replace('frames = "0:3"', 'frames = "50:60"'))
+    into_file = write_session(tmp_path, "into_file", recording)   # its output folder a file (before: failed running)
+    into_file.write_text(into_file.read_text().replace('dir = "../out/into_file"', 'dir = "good.toml"'))
     report = tmp_path / "report"
-    args = ["batch", *map(str, [good, unknown, wrong_type, missing, twin, frames, corrupt, none, good]), "--out",
-            str(report)]
+    args = ["batch", *map(str, [good, unknown, wrong_type, missing, twin, frames, corrupt, none, into_file, good]),
+            "--out", str(report)]
     assert main(args) == 2
     err = capsys.readouterr().err
-    assert "8 problem(s)" in err and f"{recording}: no frames selected (recording has 4, --frames '50:60')" in err
+    assert "9 problem(s)" in err and f"{recording}: no frames selected (recording has 4, --frames '50:60')" in err
+    assert f"{into_file}: output folder {good} ([output] dir) is a file" in err
     assert f"{good}: listed twice" in err and f"{frames}: frames (--frames): expected N" in err
     assert f"{corrupt_rec / 'intrinsics.json'}:1: not valid JSON" in err
     assert f"{unknown}: unknown section or key 'colour'" in err

@@ -354,3 +354,28 @@ def test_read_exr_takes_a_luminance_image_as_grey_and_names_other_channels(tmp_p
     with pytest.raises(ValueError, match=r"z.exr: EXR channels \['Z'\]: expected R, G and B \(or Y\)"):
         read_exr(tmp_path / "z.exr")
 
+
+def test_a_folder_another_run_writes_is_refused(tmp_path, capsys):
+    """Two runs into one output folder at once (a batch and a `photoreg run`, say): the second is refused while the
+    first holds it, and touches nothing there (before: it removed the first's files and both wrote one
+    lighting.jsonl.partial, the survivor holding a stray fragment that `photoreg score` then refused)."""
+    import os
+
+    from photoreg.cli import main
+    from photoreg.io.atomic import hold_folder
+
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "lighting.jsonl").write_text("the other run's\n")
+    args = ["run", str(REPO / "data" / "demo" / "session.toml"), "--out", str(out), "--frames", "0:1", "--rays", "16",
+            "--stride", "8", "--bands", "2", "--device", "cpu", "--quiet"]
+    fd = hold_folder(out, "test")
+    try:
+        assert main(args) == 2
+        assert f"output folder {out} (--out / [output] dir) is in use by another run" in capsys.readouterr().err
+        assert [p.name for p in out.iterdir()] == ["lighting.jsonl"]
+        assert (out / "lighting.jsonl").read_text() == "the other run's\n"
+    finally:
+        os.close(fd)
+    assert main(args) == 0 and (out / "summary.json").is_file()
+

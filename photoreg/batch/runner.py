@@ -46,6 +46,7 @@ def plan(paths: list[str], device: str | None = None) -> list[SessionTask]:
     for i, p in enumerate(paths):
         try:
             s = load_session(p)
+            check_output_dir(s.output.dir, "[output] dir")
             rec = open_configured(s.recording)
             select_frames(s.frames, len(rec), s.recording.path)
         except (ValueError, OSError) as e:

@@ -72,3 +72,19 @@ def check_output_file(path: str | os.PathLike, option: str) -> None:
                 raise NotADirectoryError(f"{path} ({option}): {parent} is a file, not a folder")
             return
 
+
+def hold_folder(path: str | os.PathLike, option: str) -> int:
+    """An exclusive lock on the output folder `path` (flock on the folder itself): the file descriptor to close when
+    done (or the process ends); ValueError naming it (`option`: what gave it) where another process holds it, since
+    two runs writing one folder would mix their files."""
+    import fcntl
+
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        os.close(fd)
+        raise ValueError(f"output folder {path} ({option}) is in use by another run: two runs writing one folder "
+                         "would mix their files (wait for it, or choose another)") from None
+    return fd
+
