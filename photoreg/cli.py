@@ -260,7 +260,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="local process pool (default) or Ray tasks (extra 'ray')")
     p.add_argument("--ray-address", help="connect to this Ray cluster (default: start a local Ray instance)")
     p.add_argument("--resume", action="store_true",
-                   help="skip sessions whose outputs are complete and whose session file is unchanged")
+                   help="skip sessions whose outputs are complete and whose settings (as resolved) and meshes are "
+                        "unchanged")
     p.add_argument("--out", default="out/batch",
                    help="batch report folder: batch_summary.json, batch_report.md, plot (default out/batch)")
     p.add_argument("--device", choices=["auto", "cpu", "cuda"], default=None,

@@ -97,8 +97,12 @@ def test_local_batch_failure_resume_and_changed_session(three_sessions, tmp_path
     assert summary["sessions"][0]["frames"] == FRAMES and summary["sessions"][0]["accuracy"] is not None
     assert "skipped a" in capsys.readouterr().err
 
-    # an edited session file runs again under --resume; the unchanged one stays skipped
-    paths[2].write_text(paths[2].read_text() + "# edited\n")
+    # a session whose settings changed runs again under --resume (a comment alone changes nothing); the unchanged
+    # one stays skipped
+    paths[2].write_text(paths[2].read_text() + "# a comment\n")
+    assert main(["batch", *good, "--resume", "--out", str(report)]) == 0
+    assert [r["status"] for r in json.loads((report / "batch_summary.json").read_text())["sessions"]] == ["skipped"] * 2
+    paths[2].write_text(paths[2].read_text().replace("bands = 2", "bands = 3"))
     assert main(["batch", *good, "--resume", "--out", str(report)]) == 0
     summary = json.loads((report / "batch_summary.json").read_text())
     assert [r["status"] for r in summary["sessions"]] == ["skipped", "ok"]
@@ -117,6 +121,15 @@ def test_local_batch_failure_resume_and_changed_session(three_sessions, tmp_path
     summary = json.loads((report / "batch_summary.json").read_text())
     assert [r["status"] for r in summary["sessions"]] == ["skipped", "ok"]
     assert summary["sessions"][1]["frames"] == FRAMES
+    # files a complete run wrote, gone: not complete (before: skipped, its summary and lighting.jsonl alone counted)
+    paths[2].write_text(paths[2].read_text().replace("pictures_every = 0", "pictures_every = 1"))
+    assert main(["batch", str(paths[2]), "--resume", "--out", str(report)]) == 0
+    assert main(["batch", str(paths[2]), "--resume", "--out", str(report)]) == 0
+    assert json.loads((report / "batch_summary.json").read_text())["sessions"][0]["status"] == "skipped"
+    shutil.rmtree(tmp_path / "out" / "b" / "sphere")
+    assert main(["batch", str(paths[2]), "--resume", "--out", str(report)]) == 0
+    assert json.loads((report / "batch_summary.json").read_text())["sessions"][0]["status"] == "ok"
+    assert len(list((tmp_path / "out" / "b" / "sphere").glob("*.png"))) == FRAMES
 
 
 def test_frames_a_run_skipped_leave_its_session_incomplete(tmp_path, recording, capsys):

@@ -12,7 +12,7 @@ import pytest
 
 from photoreg.bench import metrics
 from photoreg.bench.score import load_gt
-from photoreg.bench.sweep import COLUMNS, KEY, STAGES, fronts, merge_csv, pareto_front, read_csv
+from photoreg.bench.sweep import COLUMNS, KEY, STAGES, _floats, _ints, fronts, merge_csv, pareto_front, read_csv
 from photoreg.cli import main
 from photoreg.config import Session
 from photoreg.io.recording import iter_frames, open_recording
@@ -53,10 +53,10 @@ def test_pareto_front_on_hand_made_points():
 
 
 def test_fronts_per_series_and_merge_keeps_other_rows(tmp_path):
-    def row(device, stride, fps, err, name="X"):
+    def row(device, stride, fps, err, name="X", scenes="tabletop"):
         return {"device": device, "device_name": name, "threads": 2 if device == "cpu" else 0, "size": "80x60",
-                "stride": stride, "rays": 16, "bands": 3, "voxel_size": 0.02, "frames_per_s": fps,
-                "direction_deg": err, "si_rmse_upper": err / 100}
+                "scenes": scenes, "frames": "8", "stride": stride, "rays": 16, "bands": 3, "voxel_size": 0.02,
+                "frames_per_s": fps, "direction_deg": err, "si_rmse_upper": err / 100}
 
     path = tmp_path / "t.csv"
     merge_csv(path, [row("cpu", 1, 1.0, 2.0), row("cpu", 2, 3.0, 5.0), row("cpu", 4, 2.0, 6.0)])
@@ -66,8 +66,15 @@ def test_fronts_per_series_and_merge_keeps_other_rows(tmp_path):
         back = list(csv.DictReader(f))
     assert tuple(back[0]) == COLUMNS and back == merged
     f = fronts(merged, "direction_deg")
-    assert [r["stride"] for r in f["X (cpu, 2 threads, 80x60)"]] == ["2"]  # 4/s at 1 deg beats the others
-    assert [r["frames_per_s"] for r in f["GPU (cuda:0, 80x60)"]] == ["90"]
+    assert [r["stride"] for r in f["X (cpu, 2 threads, 80x60, tabletop x 8 frames)"]] == ["2"]  # 4/s at 1 deg wins
+    assert [r["frames_per_s"] for r in f["GPU (cuda:0, 80x60, tabletop x 8 frames)"]] == ["90"]
+    # another benchmark's row of the same setting is kept beside it, in a series of its own (before: it replaced the
+    # tabletop's, and one front compared the two scenes' errors)
+    merged = merge_csv(path, [row("cpu", 2, 9.0, 0.5, scenes="corner")])
+    assert len(merged) == 5 and [r["stride"] for r in fronts(merged, "direction_deg")[
+        "X (cpu, 2 threads, 80x60, corner x 8 frames)"]] == ["2"]
+    assert [r["stride"] for r in fronts(merged, "direction_deg")["X (cpu, 2 threads, 80x60, tabletop x 8 frames)"]] \
+        == ["2"]
     path.write_text("a,b\n1,2\n")
     with pytest.raises(ValueError, match="not a speed/error table"):
         merge_csv(path, [row("cpu", 1, 1.0, 2.0)])
@@ -117,8 +124,9 @@ def test_sweep_writes_rows_and_plot(tmp_path, capsys):
     plot.unlink()
     assert main(["bench", "sweep", "--plot-only", "--csv", str(csv_path), "--plot", str(plot)]) == 0
     assert plot.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and "5 rows" in capsys.readouterr().out
-    assert set(fronts(read_csv(csv_path), "si_rmse_upper")) == {f"{rows[0]['device_name']} (cpu, 2 threads, 80x60)",
-                                                                "NVIDIA H100 (cuda:0, 80x60)"}
+    assert set(fronts(read_csv(csv_path), "si_rmse_upper")) == {
+        f"{rows[0]['device_name']} (cpu, 2 threads, 80x60, rec x 5 frames)",
+        "NVIDIA H100 (cuda:0, 80x60, rec x 5 frames)"}
 
 
 def test_sweep_option_errors(tmp_path, capsys):
@@ -133,7 +141,8 @@ def test_sweep_option_errors(tmp_path, capsys):
     (tmp_path / "folder").mkdir()
     assert main(sweep + ["--csv", str(tmp_path / "folder"), "--plot", str(tmp_path / "a.png")]) == 2
     assert f"{tmp_path / 'folder'} (--csv) is a folder, not a file" in capsys.readouterr().err
-    (tmp_path / "cut.csv").write_text("device,device_name,threads,size,voxel_size,stride,rays,bands\ncpu,x,1,8x6,")
+    (tmp_path / "cut.csv").write_text("device,device_name,threads,size,scenes,frames,voxel_size,stride,rays,bands\n"
+                                      "cpu,x,1,8x6,")
     assert main(sweep + ["--csv", str(tmp_path / "cut.csv"), "--plot", str(tmp_path / "a.png")]) == 2
     assert f"{tmp_path / 'cut.csv'}:2: not a whole row of a speed/error table" in capsys.readouterr().err
     assert main(["bench", "speed", str(rec), "--json", str(tmp_path / "cut.csv" / "x.json")]) == 2
@@ -146,6 +155,14 @@ def test_sweep_option_errors(tmp_path, capsys):
     err = capsys.readouterr().err
     assert "--strides / --rays / --bands / --voxel-sizes: the setting s4 r16 b40 v0.01: " in err
     assert "lighting.bands must be in 1..8" in err and not scenes.exists()
+    # scene kinds and the warm-up checked before a scene is rendered (before: 'plane' rendered, then 'bogus' refused)
+    common = ["--size", "32x24", "--frames", "3", "--spp", "1", "--synth-dir", str(scenes), "--csv",
+              str(tmp_path / "b.csv"), "--plot", str(tmp_path / "b.png")]
+    assert main(["bench", "sweep", "--scenes", "plane,bogus", *common]) == 2
+    assert "--scenes: unknown scene kind(s) 'bogus'" in capsys.readouterr().err and not scenes.exists()
+    assert main(["bench", "sweep", "--scenes", "plane", "--warmup", "-1", *common]) == 2
+    assert "--warmup must be >= 0, got -1" in capsys.readouterr().err and not scenes.exists()
+    assert _ints("8,8,4", "strides") == [8, 4] and _floats("0.02,0.020", "voxel-sizes") == [0.02]   # each once
 
 
 # --- row-split CPU launches ------------------------------------------------------------------------

@@ -8,6 +8,7 @@ batch_report.md and, where sessions were scored against ground truth, a speed-vs
 """
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import json
 import sys
@@ -18,7 +19,7 @@ from pathlib import Path
 
 from ..config import Session, load_session, select_frames
 from ..io.atomic import atomic_path, check_output_dir, write_json, write_text
-from ..runner import COMPLETE_MARKER
+from ..runner import COMPLETE_MARKER, COMPOSITE_DIRS, PICTURE_DIRS
 PLOT_NAME = "batch_speed_vs_error.png"
 TRACEBACK_LINES = 15
 
@@ -31,7 +32,7 @@ class SessionTask:
     path: str          # the session file, as given
     name: str          # short name for messages and the report
     session: Session
-    digest: str        # sha256 of the session file's bytes
+    digest: str        # session_digest: what the run's outputs follow from
 
 
 def plan(paths: list[str], device: str | None = None) -> list[SessionTask]:
@@ -54,7 +55,7 @@ def plan(paths: list[str], device: str | None = None) -> list[SessionTask]:
             continue
         if device:
             s.device = device
-        tasks.append(SessionTask(i, str(p), Path(p).stem, s, hashlib.sha256(Path(p).read_bytes()).hexdigest()))
+        tasks.append(SessionTask(i, str(p), Path(p).stem, s, session_digest(s)))
     by_out: dict[str, SessionTask] = {}
     for t in tasks:
         other = by_out.setdefault(str(Path(t.session.output.dir).resolve()), t)
@@ -71,9 +72,19 @@ def plan(paths: list[str], device: str | None = None) -> list[SessionTask]:
     return tasks
 
 
+def session_digest(s: Session) -> str:
+    """sha256 of what a session's outputs follow from: its settings as resolved (paths with their variables expanded,
+    the device) and its meshes' bytes. A session file whose ${PHOTOREG_DATA} now points elsewhere, or whose mesh was
+    edited, is not complete any more (--resume runs it)."""
+    h = hashlib.sha256(json.dumps(dataclasses.asdict(s), sort_keys=True, default=str).encode())
+    for obj in s.objects:
+        h.update(Path(obj.mesh).read_bytes())
+    return h.hexdigest()
+
+
 def completed_result(task: SessionTask) -> dict | None:
-    """The result recorded by the run that completed this session's outputs, or None when they are
-    missing, disagree, or were made from a different session file."""
+    """The result recorded by the run that completed this session's outputs, or None when they are missing (the
+    per-frame files its summary counts included), disagree, or were made from other settings (session_digest)."""
     out = Path(task.session.output.dir)
     try:
         marker = json.loads((out / COMPLETE_MARKER).read_text())
@@ -85,6 +96,13 @@ def completed_result(task: SessionTask) -> dict | None:
     if not isinstance(marker, dict) or not isinstance(summary, dict):
         return None
     if marker.get("session_sha256") != task.digest or summary.get("frames_processed") != lines:
+        return None
+    every = task.session.output.pictures_every
+    pictures, composites = -(-lines // every) if every else 0, summary.get("composites") or 0
+    wanted = [(d, suffix, pictures) for d, suffixes in PICTURE_DIRS.items() for suffix in suffixes] + \
+        [(d, suffix, composites) for d, suffixes in COMPOSITE_DIRS.items() for suffix in suffixes]
+    if any(n and sum(1 for _ in (out / d).glob(f"[0-9]*{suffix}")) < n for d, suffix, n in wanted) or (
+            isinstance(summary.get("video"), dict) and not (out / str(summary["video"].get("file"))).is_file()):
         return None
     return marker.get("result")
 

@@ -31,7 +31,7 @@ import numpy as np
 from ..io.atomic import check_output_dir, check_output_file, write_json, write_text
 from ..lighting import sh
 from . import metrics
-from .scenes import SCENE_CACHE, cached_scene
+from .scenes import SCENE_CACHE, cached_scene, scene_kinds
 
 RESULTS_GLOB = "renderers_*.json"
 RUN_KEYS = ("device_name", "size", "frames", "spp", "rows")   # what the report reads of a results file
@@ -208,7 +208,6 @@ def renderers_command(args) -> int:
     from ..device import resolve_device
     from ..render.registry import RENDERERS, get_renderer
     from ..synth.generate import parse_size
-    from ..synth.scenes import SCENE_KINDS
     from .speed import device_name
 
     names = [n.strip() for n in args.renderers.split(",")] if args.renderers else sorted(RENDERERS)
@@ -217,11 +216,7 @@ def renderers_command(args) -> int:
         raise ValueError(f"--renderers: unknown renderer(s) {', '.join(map(repr, unknown))}; choose from "
                          f"{', '.join(sorted(RENDERERS))}")
     renderers = {n: get_renderer(n) for n in names}
-    kinds = [k.strip() for k in args.scenes.split(",")]
-    unknown = [k for k in kinds if k not in SCENE_KINDS]
-    if unknown:
-        raise ValueError(f"--scenes: unknown scene kind(s) {', '.join(map(repr, unknown))}; choose from "
-                         f"{', '.join(SCENE_KINDS)}")
+    kinds = scene_kinds(args.scenes)
     w, h = parse_size(args.size)
     check_output_file(args.md, "--md")
     check_output_file(args.plot, "--plot")

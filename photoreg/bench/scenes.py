@@ -9,6 +9,18 @@ from typing import Callable
 SCENE_CACHE = Path.home() / ".cache" / "photoreg" / "bench_scenes"
 
 
+def scene_kinds(text: str) -> list[str]:
+    """The scene kinds of a --scenes list (comma-separated, each once); ValueError naming the unknown ones."""
+    from ..synth.scenes import SCENE_KINDS
+
+    kinds = list(dict.fromkeys(k.strip() for k in text.split(",") if k.strip()))
+    unknown = [k for k in kinds if k not in SCENE_KINDS]
+    if unknown or not kinds:
+        raise ValueError(f"--scenes: unknown scene kind(s) {', '.join(map(repr, unknown)) or '(none given)'}; choose "
+                         f"from {', '.join(SCENE_KINDS)}")
+    return kinds
+
+
 def cached_scene(cache: Path, kind: str, width: int, height: int, frames: int, spp: int, camera: str = "orbit",
                  inserts: str = "none", log: Callable[[str], None] | None = None,
                  insert_mesh: str | None = None) -> Path:

@@ -8,8 +8,9 @@ frame time is the shared stages (preprocess, pose, fuse, dense export; the expor
 cast stage as in `bench speed`) plus its own; the first `warmup` frames of each recording are left
 out of the timings. Errors are medians over all frames of all recordings (photoreg.bench.metrics).
 
-Rows go to a CSV keyed by device + setting (re-runs replace their rows, other rows are kept) and a
-plot of frames/s against direction error and si-RMSE marks each device's Pareto front.
+Rows go to a CSV keyed by device + benchmark (size, scenes, frames) + setting (re-runs replace their rows, other
+rows are kept) and a plot of frames/s against direction error and si-RMSE marks each series' Pareto front (a device
+on one benchmark).
 """
 from __future__ import annotations
 
@@ -26,13 +27,14 @@ import numpy as np
 from ..config import Session, validate
 from ..io.atomic import atomic_path, check_output_file, write_text
 from . import metrics
-from .scenes import SCENE_CACHE, cached_scene
+from .scenes import SCENE_CACHE, cached_scene, scene_kinds
 
 DEFAULT_SCENES = ("tabletop", "corner")
 STAGES = ("preprocess", "pose", "fuse", "raycast", "sample", "transfer", "solve", "sun", "total")
-KEY = ("device", "device_name", "threads", "size", "stride", "rays", "bands", "voxel_size")
+# a row is one setting on one device over one benchmark (its scenes and frames): a re-run replaces it, other rows stay
+KEY = ("device", "device_name", "threads", "size", "scenes", "frames", "stride", "rays", "bands", "voxel_size")
 COLUMNS = (*KEY, "frames_per_s", *(f"ms_{s}" for s in STAGES), "direction_deg", "si_rmse_upper", "si_rmse_sphere",
-           "scenes", "frames", "frames_timed", "warp", "open3d", "fusion_on", "date")
+           "frames_timed", "warp", "open3d", "fusion_on", "date")
 
 
 @dataclass(frozen=True)
@@ -190,8 +192,8 @@ def merge_csv(path: Path, rows: list[dict]) -> list[dict]:
     new = [{c: _cell(r.get(c, "")) for c in COLUMNS} for r in rows]
     keys = {tuple(r[k] for k in KEY) for r in new}
     old = [r for r in read_csv(path) if tuple(r[k] for k in KEY) not in keys] if path.is_file() else []
-    merged = sorted(old + new, key=lambda r: (r["device"], r["device_name"], r["threads"], r["size"],
-                                               float(r["voxel_size"]), int(r["stride"]), int(r["rays"]),
+    merged = sorted(old + new, key=lambda r: (r["device"], r["device_name"], r["threads"], r["size"], r["scenes"],
+                                               r["frames"], float(r["voxel_size"]), int(r["stride"]), int(r["rays"]),
                                                int(r["bands"])))
     buf = io.StringIO()
     w = csv.DictWriter(buf, fieldnames=COLUMNS, lineterminator="\n")
@@ -202,10 +204,11 @@ def merge_csv(path: Path, rows: list[dict]) -> list[dict]:
 
 
 def series_label(row: dict) -> str:
-    """Plot series of a row: the device by name, with the CPU thread count."""
+    """Plot series of a row: the device by name, with the CPU thread count, and the benchmark (size, scenes, frames):
+    the rows of one series compare alike."""
     dev = row["device"]
     extra = f", {row['threads']} threads" if dev == "cpu" else ""
-    return f"{row['device_name']} ({dev}{extra}, {row['size']})"
+    return f"{row['device_name']} ({dev}{extra}, {row['size']}, {row['scenes']} x {row['frames']} frames)"
 
 
 def fronts(rows: list[dict], error: str) -> dict[str, list[dict]]:
@@ -261,7 +264,7 @@ def _ints(text: str, what: str) -> list[int]:
         raise ValueError(f"--{what}: expected comma-separated integers, got {text!r}") from None
     if not v or min(v) < 1:
         raise ValueError(f"--{what}: expected positive integers, got {text!r}")
-    return v
+    return list(dict.fromkeys(v))   # each once
 
 
 def _floats(text: str, what: str) -> list[float]:
@@ -271,7 +274,7 @@ def _floats(text: str, what: str) -> list[float]:
         raise ValueError(f"--{what}: expected comma-separated numbers, got {text!r}") from None
     if not v or min(v) <= 0:
         raise ValueError(f"--{what}: expected positive numbers, got {text!r}")
-    return v
+    return list(dict.fromkeys(v))   # each once
 
 
 def sweep_command(args) -> int:
@@ -289,6 +292,9 @@ def sweep_command(args) -> int:
         read_csv(Path(args.csv))   # the table the rows are merged into: checked before hours of work
     if args.threads is not None:
         set_cpu_threads(args.threads)
+    if args.warmup < 0:
+        raise ValueError(f"--warmup must be >= 0, got {args.warmup}")
+    kinds = None if args.recordings else scene_kinds(args.scenes)   # checked before any scene is rendered
     settings = grid(_ints(args.strides, "strides"), _ints(args.rays, "rays"), _ints(args.bands, "bands"),
                     _floats(args.voxel_sizes, "voxel-sizes"))
     for st in settings:   # every combination checked before scenes are rendered and frames run
@@ -304,8 +310,8 @@ def sweep_command(args) -> int:
         recordings = [Path(p) for p in args.recordings]
     else:
         width, height = parse_size(args.size)
-        recordings = [cached_scene(Path(args.synth_dir or SCENE_CACHE), k.strip(), width, height, args.frames,
-                                   args.spp, log=log) for k in args.scenes.split(",") if k.strip()]
+        recordings = [cached_scene(Path(args.synth_dir or SCENE_CACHE), k, width, height, args.frames, args.spp,
+                                   log=log) for k in kinds]
     log(f"{len(settings)} settings x {len(recordings)} recordings x up to {args.frames} frames each")
     rows = run_sweep(recordings, settings, device=args.device or "auto", frames=args.frames, warmup=args.warmup,
                      progress=log)
