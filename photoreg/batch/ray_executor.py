@@ -17,7 +17,7 @@ import socket
 import sys
 
 from .local import gpu_memory, workers_per_gpu
-from .runner import BatchProgress, SessionTask, failed_result, run_one
+from .runner import BatchInterrupted, BatchProgress, SessionTask, failed_result, run_one
 
 
 def _import_ray():
@@ -109,7 +109,8 @@ def gpu_fraction(share: int) -> float:
 
 def _gather(ray, tasks: list[SessionTask], progress: BatchProgress, q, share: int | None = None) -> list[dict]:
     """Submit every session (one on CUDA asks for 1/`share` of a GPU), relay progress from `q`, resubmit a failed
-    session once; results in task order."""
+    session once; results in task order. Ctrl-C: BatchInterrupted with every session's result (the unfinished ones
+    failed)."""
     remote = ray.remote(max_retries=1)(run_one)  # max_retries: Ray re-runs a task whose worker process died
 
     def submit(t: SessionTask):
@@ -120,6 +121,19 @@ def _gather(ray, tasks: list[SessionTask], progress: BatchProgress, q, share: in
 
     pending = {submit(t): (t, 1) for t in tasks}
     results: dict[int, dict] = {}
+    try:
+        _collect(ray, pending, results, progress, q, submit)
+    except KeyboardInterrupt:   # Ctrl-C: the running tasks cancelled, the report written for what finished
+        for ref in pending:
+            ray.cancel(ref, force=True)
+        raise BatchInterrupted([results.get(t.index) or failed_result(
+            t, KeyboardInterrupt("interrupted (Ctrl-C) before it finished")) for t in tasks]) from None
+    return [results[t.index] for t in tasks]
+
+
+def _collect(ray, pending: dict, results: dict[int, dict], progress: BatchProgress, q, submit) -> None:
+    """_gather's loop: results of the `pending` tasks (ref -> (session, attempt)) into `results` as they finish, a
+    failed one submitted once more."""
     while pending:
         ready, _ = ray.wait(list(pending), num_returns=1, timeout=0.25)
         for item in q.get_nowait_batch(q.qsize()):
@@ -137,4 +151,3 @@ def _gather(ray, tasks: list[SessionTask], progress: BatchProgress, q, share: in
             r["attempts"] = attempt
             results[t.index] = r
             progress.finished(r)
-    return [results[t.index] for t in tasks]

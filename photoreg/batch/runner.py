@@ -300,15 +300,15 @@ def batch_command(args) -> int:
             progress.finished(results[t.index])
     interrupted = False
     if todo:
-        if args.executor == "ray":
-            from .ray_executor import run_ray
-            done = run_ray(todo, progress, args.workers, args.ray_address)
-        else:
-            from .local import run_local
-            try:
+        try:
+            if args.executor == "ray":
+                from .ray_executor import run_ray
+                done = run_ray(todo, progress, args.workers, args.ray_address)
+            else:
+                from .local import run_local
                 done = run_local(todo, progress, args.workers)
-            except BatchInterrupted as e:   # Ctrl-C: the finished sessions still get their report
-                done, interrupted = e.results, True
+        except BatchInterrupted as e:   # Ctrl-C: the finished sessions still get their report
+            done, interrupted = e.results, True
         results.update((t.index, r) for t, r in zip(todo, done))
     ordered = [results[t.index] for t in tasks]
     summary = write_reports(args.out, ordered, args.executor, time.perf_counter() - t0)
