@@ -160,7 +160,7 @@ def test_frames_a_run_skipped_leave_its_session_incomplete(tmp_path, recording, 
 def test_ctrl_c_stops_the_batch_and_reports_what_finished(tmp_path, executor):
     """Ctrl-C in a terminal (SIGINT to the batch's process group) while its workers run: the workers are stopped, the
     report lists every session as interrupted, and the batch exits 130 at once (before: it hung joining workers
-    interrupted mid-queue, or printed their tracebacks, and wrote no report; with Ray it wrote none until 2026-11-29)."""
+    interrupted mid-queue, or printed their tracebacks, and wrote no report; with Ray it wrote none till 2026-11-29)."""
     import os
     import signal
     import subprocess
