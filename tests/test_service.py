@@ -289,6 +289,13 @@ BAD_HELLOS = [
     ({"intrinsics": {**K.to_json(), "fx": 10 ** 400}}, "bad_field"),   # too large for a float
     ({"options": {"objects": [{"mesh": "x", "albedo": [-5.0, 1e6, 0.0]}]}}, "bad_field"),
     ({"options": {"lighting": {"process_noise": float("inf")}}}, "bad_field"),
+    # the light search's and the solves' sizes capped as rays are (before: 3e7 candidates took 19.5 GB in a frame)
+    ({"options": {"lighting": {"sun_candidates": 30_000_000}}}, "too_large"),
+    ({"options": {"lighting": {"sun_rays": 100_000}}}, "too_large"),
+    ({"options": {"render": {"light_rays": 100_000}}}, "too_large"),
+    ({"options": {"lighting": {"history": 10**9}}}, "too_large"),
+    ({"options": {"lighting": {"max_samples": 10**9}}}, "too_large"),
+    ({"options": {"lighting": {"sun_samples": 10**9}}}, "too_large"),
 ]
 
 
@@ -614,24 +621,29 @@ def test_a_reply_that_cannot_be_encoded_is_an_error_and_the_replies_go_on(record
 
 def test_frames_decode_two_at_a_time_and_are_answered_in_order(recording, monkeypatch):
     """The server decodes a connection's frames DECODING (2) at once on helper threads and queues them in the order
-    they came: with decoding slowed down (frame 0 0.4 s, the others 0.1 s), two decodes overlap, never three;
+    they came: with decoding slowed down (frame 0 0.4 s, the others 0.1 s), two frames are decoding or decoded and
+    waiting at once, never three;
     frame 1, decoded first, still waits for frame 0; a frame whose PNG does not decode gets its error (frame 2)
     and the rest are answered in order; a bye after them waits for every reply."""
     import photoreg.service.server as server_module
 
-    real_decode, lock, state = server_module.decode_frame, threading.Lock(), {"now": 0, "most": 0}
+    real_decode, lock = server_module.decode_frame, threading.Lock()
+    state = {"now": 0, "most": 0, "zero": False, "beside_zero": 0}
     decoded = []
 
     def slow_decode(header, payload, intr, default_index):
         with lock:
             state["now"] += 1
             state["most"] = max(state["most"], state["now"])
+            state["beside_zero"] += state["zero"]
+            state["zero"] |= header.get("index") == 0
         try:
             time.sleep(0.4 if header.get("index") == 0 else 0.1)
             return real_decode(header, payload, intr, default_index)
         finally:
             with lock:
                 state["now"] -= 1
+                state["zero"] &= header.get("index") != 0
                 decoded.append(header.get("index"))
 
     monkeypatch.setattr(server_module, "decode_frame", slow_decode)
@@ -650,6 +662,9 @@ def test_frames_decode_two_at_a_time_and_are_answered_in_order(recording, monkey
             ws.send(encode({"type": "bye"}))
             replies = [json.loads(ws.recv(60)) for _ in range(6)]
     assert state["most"] == 2 and decoded.index(1) < decoded.index(0), (state, decoded)
+    # frame 1, decoded, holds its slot until frame 0 is taken: no frame decodes beside frame 0 but it (before: 1, 2
+    # and 3 did, one after another, piling up decoded behind the slow one)
+    assert state["beside_zero"] == 1, state
     errors = [r for r in replies if r["type"] == "error"]
     assert len(errors) == 1 and errors[0]["frame"] == 2, errors
     assert [r["frame"] for r in replies if r["type"] == "lighting"] == [0, 1, 3, 4]
@@ -1029,6 +1044,33 @@ def test_malformed_messages_get_an_error_and_the_connection_stays_usable(ready_w
     assert json.loads(ready_ws.recv(60))["type"] == "lighting"
 
 
+def test_odd_input_is_a_clear_error_not_internal(tmp_path):
+    """An integer past Python's 4300 digits in a header, a mesh name too long for the file system: bad_message and
+    bad_field naming no server path (before: 'internal', the mesh folder in it); fill bytes of a JPEG skipped at
+    once, the frame header found after them (a run of 30 MB took 5.6 s of the server's interpreter)."""
+    from photoreg.service.protocol import _jpeg_size, resolve_mesh
+
+    with pytest.raises(ProtocolError) as e:
+        decode('{"type": "hello", "x": ' + "1" * 5000 + "}")
+    assert e.value.code == "bad_message" and "not valid JSON" in e.value.message
+    with pytest.raises(ProtocolError) as e:
+        resolve_mesh("a" * 300 + ".obj", tmp_path, "hello.options.objects[0].mesh")
+    assert e.value.code == "bad_field" and str(tmp_path) not in e.value.message
+    jpeg = cv2.imencode(".jpg", np.zeros((48, 64, 3), np.uint8))[1].tobytes()
+    assert _jpeg_size(jpeg[:2] + b"\xff" * 3_000_000 + jpeg[2:]) == (64, 48)
+    assert decode(encode({"type": "ping"}))[0] == {"type": "ping"}
+
+
+def test_serve_options_are_checked(capsys):
+    from photoreg.cli import main
+
+    for argv, message in ((["--port", "70000"], "--port must be in 0..65535, got 70000"),
+                          (["--max-message-mb", "nan"], "--max-message-mb must be a positive number of MiB, got nan"),
+                          (["--max-message-mb", "0"], "--max-message-mb must be a positive number of MiB, got 0.0")):
+        assert main(["serve", *argv]) == 2
+        assert message in capsys.readouterr().err
+
+
 def test_limits_clients_token_idle(recording):
     """One client at most, a token, a short idle timeout: extra, unauthorised and idle clients are closed
     with an error naming why."""
@@ -1069,6 +1111,37 @@ def test_limits_clients_token_idle(recording):
         with pytest.raises(ServiceClosed) as closed:
             c.recv(10)
         assert closed.value.code == 1000 and closed.value.reason == "idle timeout"
+    # with a token, a connection has hello_timeout for its hello: pings do not keep it (before: they held the slot
+    # until the idle timeout, and a client with the token was refused meanwhile)
+    with ServerThread(ServerConfig(port=0, device="cpu", max_clients=1, token="s3cret", idle_timeout=60,
+                                   hello_timeout=1.0, processes=False)) as running:
+        with ws_connect(running.server.url, compression=None) as squatter:
+            t0 = time.monotonic()
+            for _ in range(4):
+                squatter.send(encode({"type": "ping"}))
+                time.sleep(0.3)
+            replies = []
+            with pytest.raises(ConnectionClosed) as closed:
+                while True:
+                    replies.append(json.loads(squatter.recv(10)))
+            assert closed.value.rcvd.code == 1008 and time.monotonic() - t0 < 5
+            assert replies[-1]["code"] == "unauthorized"
+            assert "no hello with the token within 1 s" in replies[-1]["message"]
+        wait_for(lambda: running.server.stats()["connections"] == 0)
+        connect(running.server.url, K, OPTIONS, token="s3cret").close()
+
+
+def test_replies_read_before_the_connection_closed_are_kept(server, recording):
+    """Client.poll after the server's bye and close: the replies that came before (its bye among them) are returned,
+    the next call raises (before: poll raised and lost them, and a stream's summary had no server_bye)."""
+    c = connect(server.server.url, K, OPTIONS)
+    c.send_frame(first_frame(recording))
+    c.send_message(encode({"type": "bye"}))
+    wait_for(lambda: c.ws.close_code is not None, 30)
+    replies = c.poll()
+    assert [r["type"] for r in replies][-1] == "bye" and "lighting" in [r["type"] for r in replies]
+    with pytest.raises(ServiceClosed):
+        c.poll()
 
 
 @pytest.mark.parametrize("ctrl_c", [False, True], ids=["sigterm", "sigint-to-the-group"])

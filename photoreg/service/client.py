@@ -85,17 +85,26 @@ class Client:
         return header
 
     def poll(self) -> list[dict]:
-        """Every reply that has already arrived, without waiting."""
+        """Every reply that has already arrived, without waiting; where the connection has closed meanwhile, those
+        read before its end (the next call raises ServiceClosed)."""
         replies = []
-        while (msg := self.recv(0)) is not None:
-            replies.append(msg)
+        try:
+            while (msg := self.recv(0)) is not None:
+                replies.append(msg)
+        except ServiceClosed:
+            if not replies:
+                raise
         return replies
 
     def finish(self, timeout: float = 60.0) -> list[dict]:
-        """Say bye; returns the replies still to come, ending with the server's bye, then closes."""
+        """Say bye; returns the replies still to come, ending with the server's bye, then closes. Where the server
+        closed first (its shutdown), the replies it sent before, its bye among them."""
         replies: list[dict] = []
         try:
             self.ws.send(encode({"type": "bye"}))
+        except ConnectionClosed:
+            pass   # what the server sent before it closed is still read below
+        try:
             deadline = time.monotonic() + timeout
             while (left := deadline - time.monotonic()) > 0:
                 msg = self.recv(left)

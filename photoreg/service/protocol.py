@@ -20,7 +20,7 @@ import cv2
 import numpy as np
 
 from ..config import LightingConfig, ObjectConfig, ReconstructionConfig, RenderConfig, Session, _fill, validate
-from ..io.images import jpeg_cut_short, registered_depth
+from ..io.images import after_fill, jpeg_cut_short, registered_depth
 from ..io.intrinsics import checked_intrinsics
 from ..io.native import depth_to_png16
 from ..io.poses import check_pose
@@ -76,6 +76,10 @@ class Limits:
     max_trunc_voxels: float = 16.0  # wider truncation bands touch more blocks per frame
     max_depth: float = 10.0         # metres (reconstruction.depth_max): farther depth touches more blocks
     max_objects: int = 32
+    # the light search's and the solves' sizes (their memory and time grow with them; defaults 256, 8 and 16, 8000)
+    max_sun_candidates: int = 4096  # lighting.sun_candidates
+    max_light_rays: int = 64        # lighting.sun_rays, render.light_rays
+    max_samples: int = 50000        # lighting.max_samples, sun_samples, history
 
     def to_json(self) -> dict:
         return dict(vars(self))
@@ -125,9 +129,9 @@ def decode(data: str | bytes) -> tuple[dict, memoryview]:
         payload = view[_LEN.size + n:]
     try:
         header = json.loads(text)
-    except (json.JSONDecodeError, RecursionError) as e:
-        raise ProtocolError("bad_message", f"header is not valid JSON ({getattr(e, 'msg', 'nested too deeply')})"
-                            ) from None
+    except (ValueError, RecursionError) as e:   # ValueError: also an integer past Python's 4300 digits
+        why = "nested too deeply" if isinstance(e, RecursionError) else getattr(e, "msg", None) or str(e)[:80]
+        raise ProtocolError("bad_message", f"header is not valid JSON ({why})") from None
     if not isinstance(header, dict):
         raise ProtocolError("bad_message", f"header must be a JSON object, got {type(header).__name__}")
     kind = header.get("type")
@@ -329,7 +333,11 @@ def resolve_mesh(name: str, meshes: Path | None, where: str) -> str:
         raise ProtocolError("bad_field", f"{where}: a mesh is named by its file name in the server's mesh folder, "
                                          f"got {name!r:.80}")
     path = Path(meshes) / name
-    if not path.is_file():
+    try:
+        found = path.is_file()
+    except OSError:   # a name too long for the file system: no such mesh (the folder is not the client's to see)
+        found = False
+    if not found:
         known = sorted(p.name for p in Path(meshes).iterdir()
                        if p.is_file() and not p.name.startswith(".") and p.suffix.lower() in MESH_SUFFIXES)
         raise ProtocolError("bad_field", f"{where}: no mesh {name!r:.80} on this server (it has: "
@@ -389,7 +397,14 @@ def session_from_options(value, device: str, limits: Limits, meshes: Path | None
                     (R.trunc_voxels <= limits.max_trunc_voxels,
                      f"reconstruction.trunc_voxels must be <= {limits.max_trunc_voxels} on this server"),
                     (R.depth_max <= limits.max_depth,
-                     f"reconstruction.depth_max must be <= {limits.max_depth} m on this server")):
+                     f"reconstruction.depth_max must be <= {limits.max_depth} m on this server"),
+                    (L.sun_candidates <= limits.max_sun_candidates,
+                     f"lighting.sun_candidates must be <= {limits.max_sun_candidates} on this server"),
+                    *((v <= limits.max_light_rays, f"{k} must be <= {limits.max_light_rays} on this server")
+                      for k, v in (("lighting.sun_rays", L.sun_rays), ("render.light_rays", s.render.light_rays))),
+                    *((v <= limits.max_samples, f"lighting.{k} must be <= {limits.max_samples} on this server")
+                      for k, v in (("max_samples", L.max_samples), ("sun_samples", L.sun_samples),
+                                   ("history", L.history)))):
         if not ok:
             raise ProtocolError("too_large", f"hello.options: {msg}")
     return s, notes
@@ -426,8 +441,8 @@ def _jpeg_size(data: bytes) -> tuple[int, int]:
         if data[i] != 0xFF:
             raise ValueError("corrupt JPEG marker structure")
         marker = data[i + 1]
-        if marker == 0xFF:          # fill byte
-            i += 1
+        if marker == 0xFF:          # fill bytes: to the last of them
+            i = after_fill(data, i) - 1
             continue
         if marker == 0x01 or 0xD0 <= marker <= 0xD8:  # markers without a length
             i += 2

@@ -6,8 +6,9 @@ the pipeline in the connection's own process, or with ServerConfig.processes off
 photoreg.service.host; reply). The queue between them is bounded and, when a frame arrives while it is full,
 drops the oldest waiting frame ('latest wins'), so a client faster than the pipeline gets fresh answers and
 memory stays bounded: per connection at most `queue` decoded frames waiting, HANDED in the pipeline, one
-composite being encoded, DECODING messages being decoded and websockets' small receive buffer. A client that
-does not read its replies stalls only its own worker (a send waits for its socket); every other connection
+composite being encoded, DECODING messages being decoded or decoded and waiting for an earlier one, and websockets'
+small receive buffer. A client that does not read its replies stalls only its own worker (a send waits for its
+socket; websockets' keepalive ends the connection after about a minute without its pongs); every other connection
 keeps its own pipeline and queue. A session with objects (their meshes named in the server's mesh folder,
 --meshes) gets each frame's composite after its lighting reply.
 """
@@ -18,6 +19,7 @@ import collections
 import hmac
 import ipaddress
 import logging
+import math
 import signal
 import threading
 import time
@@ -55,6 +57,8 @@ class ServerConfig:
     queue: int = 2                # frames waiting per connection before the oldest is dropped
     idle_timeout: float = 300.0   # s without a message (and no frame in work) before closing; <= 0: never
     shutdown_timeout: float = 10.0  # s to finish in-flight frames on shutdown
+    hello_timeout: float = 10.0   # s a connection has for its hello where a token is required: one without holds no
+                                  # client slot longer (any message, a ping, kept it open until the idle timeout)
     block_count: int = 4000       # initial TSDF hash capacity per session (32 KB per block, grows when full):
                                   # the memory a connection costs, so the server's to choose, not the client's
     limits: Limits = field(default_factory=Limits)
@@ -65,6 +69,12 @@ class ServerConfig:
     def __post_init__(self) -> None:
         if self.max_clients < 1 or self.queue < 1:
             raise ValueError(f"--max-clients and --queue must be >= 1, got {self.max_clients} and {self.queue}")
+        if not 0 <= self.port <= 65535:
+            raise ValueError(f"--port must be in 0..65535, got {self.port}")
+        if not math.isfinite(self.idle_timeout):
+            raise ValueError(f"--idle-timeout must be a number of seconds, got {self.idle_timeout}")
+        if self.limits.max_message_bytes < 1024:
+            raise ValueError(f"--max-message-mb must allow at least 1 KiB, got {self.limits.max_message_bytes} bytes")
         if self.meshes is not None and not Path(self.meshes).is_dir():
             raise ValueError(f"--meshes {self.meshes}: not a folder")
 
@@ -143,9 +153,11 @@ class Connection:
                 await last_words(self.ws, error_message("idle_timeout", f"no message for {self.cfg.idle_timeout:g} "
                                                                         "s: closing the connection"),
                                  CloseCode.NORMAL_CLOSURE, "idle timeout")
-            elif ending == "unauthorized":
-                await last_words(self.ws, error_message("unauthorized", "missing or wrong token"),
-                                 CloseCode.POLICY_VIOLATION, "unauthorized")
+            elif ending in ("unauthorized", "no_hello"):
+                why = "missing or wrong token" if ending == "unauthorized" else \
+                    f"no hello with the token within {self.cfg.hello_timeout:g} s"
+                await last_words(self.ws, error_message("unauthorized", why), CloseCode.POLICY_VIOLATION,
+                                 "unauthorized")
         finally:
             orderer.cancel()
             worker.cancel()
@@ -206,10 +218,16 @@ class Connection:
         stop() cancels this task; the flag covers a cancellation that asyncio.wait_for swallows when the
         message arrives at the same moment (Python < 3.12)."""
         idle_timeout = self.cfg.idle_timeout if self.cfg.idle_timeout > 0 else None
+        hello_by = time.monotonic() + self.cfg.hello_timeout if self.cfg.token is not None else None
         while self.stop_reason is None:
+            wait = idle_timeout
+            if hello_by is not None and self.host is None:   # no session yet: the hello's deadline
+                wait = min(max(hello_by - time.monotonic(), 0.0), wait or math.inf)
             try:
-                data = await asyncio.wait_for(self.ws.recv(), idle_timeout)
+                data = await asyncio.wait_for(self.ws.recv(), wait)
             except TimeoutError:
+                if hello_by is not None and self.host is None and time.monotonic() >= hello_by:
+                    return "no_hello"
                 if not self.idle.is_set():
                     continue  # the client waits for frames still in work: not idle
                 return "idle"
@@ -279,12 +297,13 @@ class Connection:
         if self.host is None or not self.host.ready:
             raise ProtocolError("not_ready", "frame before hello: send hello first")
         self.counts["received"] += 1
-        await self.decode_slots.acquire()   # at most DECODING at once: the next message waits for a slot
+        # at most DECODING between here and the queue: the next message waits for a slot, which the orderer frees as it
+        # takes the frame (freed as decoding ended, fast frames behind a slow one piled up decoded, 28 of 63 MB each)
+        await self.decode_slots.acquire()
         self.undecoded += 1
         self.idle.clear()
         decoded = asyncio.ensure_future(asyncio.to_thread(decode_frame, header, payload, self.intrinsics,
                                                           self.counts["received"] - 1))
-        decoded.add_done_callback(lambda _: self.decode_slots.release())
         self.decoding.put_nowait((decoded, received))
 
     async def _queue_decoded(self) -> None:
@@ -297,6 +316,7 @@ class Connection:
             try:
                 frame = await decoded
             except Exception as e:
+                self.decode_slots.release()
                 self.undecoded -= 1
                 self._settle()
                 try:
@@ -304,6 +324,7 @@ class Connection:
                 except ConnectionClosed:
                     pass
                 continue
+            self.decode_slots.release()
             self.undecoded -= 1
             if self.stop_reason is not None:
                 self.counts["cancelled"] += 1
@@ -547,6 +568,8 @@ def serve_command(args) -> int:
     logging.basicConfig(level=logging.INFO, format="%(asctime)s photoreg serve: %(message)s")
     logging.getLogger("websockets").setLevel(logging.WARNING)   # our own lines say who came and went
     cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_ERROR)   # clients' corrupt images get error replies
+    if not (math.isfinite(args.max_message_mb) and args.max_message_mb > 0):
+        raise ValueError(f"--max-message-mb must be a positive number of MiB, got {args.max_message_mb}")
     config = ServerConfig(host=args.host, port=args.port, token=token_option(args.token),
                           device=args.device, max_clients=args.max_clients, queue=args.queue,
                           idle_timeout=args.idle_timeout, meshes=args.meshes, processes=not args.threads,
