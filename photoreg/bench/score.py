@@ -66,13 +66,13 @@ def load_gt(recording: str | Path) -> np.ndarray:
         raise ValueError(f"{path}: not UTF-8 text (byte {e.start})") from None
     if not isinstance(obj, dict) or "sh" not in obj:
         raise ValueError(f"{path}: expected an object with 'bands' and 'sh'")
-    if not np.any(_sh_array(obj["sh"], None, str(path))):
-        raise ValueError(f"{path}: the ground-truth lighting is zero (no light to score against)")
     if obj.get("frame", "world") != "world":
         raise ValueError(f"{path}: ground truth must be in the world frame, got {obj['frame']!r}")
     gt = _sh_array(obj["sh"], obj.get("bands"), str(path))
     if not np.isfinite(gt).all():
         raise ValueError(f"{path}: ground-truth SH has non-finite values")
+    if not gt.any():
+        raise ValueError(f"{path}: the ground-truth lighting is zero (no light to score against)")
     return gt
 
 
@@ -334,7 +334,7 @@ def score_composites(out: str | Path, recording: str | Path) -> dict:
         row = {"frame": t.frame, **{f"baseline_{k}": v for k, v in t.baseline(with_flip).items()}}
         lin, png = out / "composite_linear" / f"{t.frame:06d}.exr", out / "composite" / f"{t.frame:06d}.png"
         source = lin if lin.is_file() else png if png.is_file() else None
-        est = None if source is None else read_exr(lin) if source == lin else srgb_to_linear(read_rgb(png))
+        est = None if source is None else read_exr(source) if source == lin else srgb_to_linear(read_rgb(source))
         if est is None:
             missing.append(t.frame)
         elif est.shape != t.gt.shape:
