@@ -6,6 +6,7 @@ import csv
 import json
 import os
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -163,6 +164,28 @@ def test_sweep_option_errors(tmp_path, capsys):
     assert main(["bench", "sweep", "--scenes", "plane", "--warmup", "-1", *common]) == 2
     assert "--warmup must be >= 0, got -1" in capsys.readouterr().err and not scenes.exists()
     assert _ints("8,8,4", "strides") == [8, 4] and _floats("0.02,0.020", "voxel-sizes") == [0.02]   # each once
+
+
+def test_an_interrupted_sweep_keeps_the_voxel_sizes_it_finished(tmp_path, monkeypatch):
+    """Ctrl-C during the second voxel size: the first one's rows are in the CSV already (before: nothing was kept of
+    an hour's sweep). The sweep's work stands in for run_sweep here; the whole sweep runs in the test above."""
+    import photoreg.bench.sweep as sweep
+
+    def fake(recordings, settings, **kwargs):
+        if settings[0].voxel_size == 0.03:
+            raise KeyboardInterrupt
+        return [{"device": "cpu", "device_name": "X", "threads": 2, "size": "80x60", "scenes": "rec", "frames": "5",
+                 "stride": st.stride, "rays": st.rays, "bands": st.bands, "voxel_size": st.voxel_size,
+                 "frames_per_s": 1.0, "direction_deg": 1.0, "si_rmse_upper": 0.1} for st in settings]
+
+    monkeypatch.setattr(sweep, "run_sweep", fake)
+    rec = write_recording(tmp_path / "rec", K80, 3)
+    csv_path = tmp_path / "t.csv"
+    with pytest.raises(KeyboardInterrupt):
+        sweep.sweep_command(SimpleNamespace(plot_only=False, csv=str(csv_path), plot=str(tmp_path / "p.png"),
+                                            threads=None, warmup=0, recordings=[str(rec)], scenes="", strides="4,8",
+                                            rays="16", bands="3", voxel_sizes="0.02,0.03", device="cpu", frames=3))
+    assert sorted((r["stride"], r["voxel_size"]) for r in read_csv(csv_path)) == [("4", "0.02"), ("8", "0.02")]
 
 
 # --- row-split CPU launches ------------------------------------------------------------------------

@@ -313,9 +313,13 @@ def sweep_command(args) -> int:
         recordings = [cached_scene(Path(args.synth_dir or SCENE_CACHE), k, width, height, args.frames, args.spp,
                                    log=log) for k in kinds]
     log(f"{len(settings)} settings x {len(recordings)} recordings x up to {args.frames} frames each")
-    rows = run_sweep(recordings, settings, device=args.device or "auto", frames=args.frames, warmup=args.warmup,
-                     progress=log)
-    merged = merge_csv(Path(args.csv), rows)
+    rows: list[dict] = []
+    # a voxel size at a time, its rows written as it ends: an interrupted sweep loses the running one's alone
+    for voxel in dict.fromkeys(st.voxel_size for st in settings):
+        group = run_sweep(recordings, [st for st in settings if st.voxel_size == voxel],
+                          device=args.device or "auto", frames=args.frames, warmup=args.warmup, progress=log)
+        merged = merge_csv(Path(args.csv), group)
+        rows += group
     plot_pareto(merged, Path(args.plot))
     for st, r in zip(settings, rows):
         print(f"{r['device']:7s} {st.label:22s} {r['frames_per_s']:8.2f} frames/s"
