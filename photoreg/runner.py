@@ -186,11 +186,13 @@ def writer_threads() -> int:
     return max(1, min(WRITER_THREADS, cpu_threads() // 2))
 
 
-def run_session(s: Session, quiet: bool = False, on_frame: Callable[[int, int], None] | None = None) -> dict:
+def run_session(s: Session, quiet: bool = False, on_frame: Callable[[int, int], None] | None = None,
+                after: Callable[[dict], None] | None = None) -> dict:
     """Process a session; returns the summary (also written to summary.json).
 
     on_frame(frames done, frames selected) is called after each frame (batch progress from worker processes). The
-    output folder is held (io.atomic.hold_folder) while the frames run: another run into it is refused."""
+    output folder is held (io.atomic.hold_folder) while the frames run and `after(summary)` runs (a batch scores the
+    outputs and marks them complete): another run into it is refused."""
     from .io.recording import open_configured
     from .pipeline import Pipeline
 
@@ -205,13 +207,17 @@ def run_session(s: Session, quiet: bool = False, on_frame: Callable[[int, int], 
     out.mkdir(parents=True, exist_ok=True)
     try:
         lock = hold_folder(out, "--out / [output] dir")
-    except ValueError:
+    except BaseException:
         pipe.close()
         raise
     try:
-        return _run_frames(s, rec, indices, pipe, out, quiet, on_frame)
+        summary = _run_frames(s, rec, indices, pipe, out, quiet, on_frame)
+        if after is not None:
+            after(summary)
+        return summary
     finally:
-        os.close(lock)
+        if lock is not None:
+            os.close(lock)
 
 
 def _run_frames(s: Session, rec, indices: list[int], pipe, out: Path, quiet: bool,

@@ -209,8 +209,8 @@ def test_ctrl_c_stops_the_batch_and_reports_what_finished(tmp_path, executor):
 
 def test_a_dead_worker_s_sessions_run_again(tmp_path, recording):
     """A worker process killed mid-batch (SIGKILL: out of memory, an operator) breaks the pool and every session in
-    it: those run again once in new worker processes and finish (before: each of them failed with BrokenProcessPool,
-    the queued ones too, which had not started)."""
+    it: they go on in new worker processes and finish, the one it ran on its second attempt, the queued ones on their
+    first (before: each of them failed with BrokenProcessPool, the queued ones too, which had not started)."""
     import os
     import signal
     import subprocess
@@ -235,9 +235,11 @@ def test_a_dead_worker_s_sessions_run_again(tmp_path, recording):
             proc.kill()
     err = "".join(lines) + err
     assert proc.returncode == 0, err
-    assert "a worker process died; running " in err and "again in new worker processes" in err
+    assert "a worker process died; " in err and " go on in new worker processes" in err
     sessions = json.loads((tmp_path / "report" / "batch_summary.json").read_text())["sessions"]
-    assert [r["status"] for r in sessions] == ["ok"] * 3 and max(r["attempts"] for r in sessions) == 2, sessions
+    # the session it ran used an attempt; those still queued did not (they would fail with it if it died again)
+    assert [r["status"] for r in sessions] == ["ok"] * 3, sessions
+    assert sorted(r["attempts"] for r in sessions) == [1, 1, 2], sessions
 
 
 def _parent(pid: int) -> int | None:

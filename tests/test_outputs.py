@@ -351,7 +351,7 @@ def test_read_exr_takes_a_luminance_image_as_grey_and_names_other_channels(tmp_p
     OpenEXR.File(header, {"Y": np.full((4, 5), 0.5, np.float32)}).write(str(tmp_path / "y.exr"))
     assert read_exr(tmp_path / "y.exr").shape == (4, 5, 3) and np.all(read_exr(tmp_path / "y.exr") == 0.5)
     OpenEXR.File(header, {"Z": np.ones((4, 5), np.float32)}).write(str(tmp_path / "z.exr"))
-    with pytest.raises(ValueError, match=r"z.exr: EXR channels \['Z'\]: expected R, G and B \(or Y\)"):
+    with pytest.raises(ValueError, match=r"z.exr: EXR channels \['Z'\]: expected R, G and B \(or Y alone\)"):
         read_exr(tmp_path / "z.exr")
 
 
@@ -378,4 +378,31 @@ def test_a_folder_another_run_writes_is_refused(tmp_path, capsys):
     finally:
         os.close(fd)
     assert main(args) == 0 and (out / "summary.json").is_file()
+
+    # held through `after` too (a batch scores the outputs and marks them complete there)
+    session = load_session(REPO / "data" / "demo" / "session.toml")
+    session.output.dir, session.device, session.frames = str(out), "cpu", "0:1"
+    session.lighting.rays, session.lighting.stride, session.lighting.bands = 16, 8, 2
+    held = []
+
+    def after(summary):
+        with pytest.raises(ValueError, match="is in use by another run"):
+            hold_folder(out, "test")
+        held.append(summary["frames_processed"])
+
+    run_session(session, quiet=True, after=after)
+    assert held == [1]
+
+    # a file system that takes no such lock: the run goes on, warned (before: it failed, naming no folder)
+    import errno
+    import fcntl
+
+    def no_locks(fd, op):
+        raise OSError(errno.ENOLCK, "No locks available")
+
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(fcntl, "flock", no_locks)
+        assert main(args) == 0
+    assert f"output folder {out} (--out / [output] dir) cannot be locked (No locks available)" in \
+        capsys.readouterr().err
 

@@ -671,6 +671,24 @@ def test_frames_decode_two_at_a_time_and_are_answered_in_order(recording, monkey
     assert replies[-1]["type"] == "bye" and replies[-1]["frames_processed"] == 4 and replies[-1]["errors"] == 1
 
 
+def test_a_stream_into_a_folder_another_run_writes_is_refused(server, recording, tmp_path, capsys):
+    """`photoreg stream --out` holds its folder as `photoreg run` does: into one another run holds, it is refused
+    before it connects and writes nothing there (before: it overwrote the other's lighting.jsonl.partial)."""
+    from photoreg.io.atomic import hold_folder
+
+    out = tmp_path / "out"
+    out.mkdir()
+    fd = hold_folder(out, "test")
+    try:
+        assert main(["stream", str(recording), "--url", server.server.url, "--out", str(out), *STREAM_ARGS]) == 2
+        assert f"output folder {out} (--out) is in use by another run" in capsys.readouterr().err
+        assert not any(out.iterdir())
+    finally:
+        os.close(fd)
+    records, _ = stream(recording, server.server.url, out)
+    assert records
+
+
 def test_stream_reports_an_unreadable_frame_and_sends_the_rest(server, tmp_path):
     """`photoreg stream` of a recording with a corrupt colour image: the frames around it are read ahead, sent and
     answered in order; the bad one is named in summary.json's frames_skipped."""

@@ -403,7 +403,8 @@ def test_an_unfinished_render_is_made_on_the_output_s_own_file_system_and_others
         raise KeyboardInterrupt
 
     (tmp_path / "mnt").mkdir()
-    cfg = SynthConfig("plane", str(tmp_path / "mnt"), frames=1, width=16, height=12, spp=1, insert_frames="none")
+    monkeypatch.chdir(tmp_path)   # --out relative, as typed (its .partial was taken for another's content)
+    cfg = SynthConfig("plane", "mnt", frames=1, width=16, height=12, spp=1, insert_frames="none")
     monkeypatch.setattr(gen, "_exposed", interrupted)
     with pytest.raises(KeyboardInterrupt):
         generate(cfg, log=None)
@@ -411,7 +412,7 @@ def test_an_unfinished_render_is_made_on_the_output_s_own_file_system_and_others
     assert [p.name for p in (tmp_path / "mnt").iterdir()] == [gen.PARTIAL]
     assert (tmp_path / "mnt" / gen.PARTIAL / gen.PARTIAL_MARK).is_file()
     monkeypatch.setattr(gen, "_exposed", exposed)
-    assert generate(cfg, log=None) == tmp_path / "mnt"
+    assert str(generate(cfg, log=None)) == "mnt"
     assert (tmp_path / "mnt" / "scene.json").is_file() and not (tmp_path / "mnt" / gen.PARTIAL).exists()
 
     (tmp_path / "y.partial").mkdir()

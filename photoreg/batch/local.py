@@ -90,6 +90,7 @@ def gpu_memory() -> list[int]:
 
 
 def _run(task: SessionTask) -> dict:
+    _progress_queue.put((task.index, None, None))   # started: a worker that dies now takes this session with it
     return run_one(task, _progress_queue)
 
 
@@ -110,18 +111,24 @@ def assign_devices(tasks: list[SessionTask]) -> list[int]:
     return memory
 
 
-def _drain(q, progress: BatchProgress) -> None:
+def _drain(q, progress: BatchProgress, started: set[int]) -> None:
+    """Relay the workers' progress; the sessions a worker started join `started`."""
     while True:
         try:
-            progress.frame(*q.get_nowait())
+            index, done, total = q.get_nowait()
         except queue.Empty:
             return
+        if done is None:
+            started.add(index)
+        else:
+            progress.frame(index, done, total)
 
 
 def run_local(tasks: list[SessionTask], progress: BatchProgress, workers: int | None = None) -> list[dict]:
     """Run the sessions in `workers` processes (default: default_workers); results in task order. A worker process
-    that dies (killed, out of memory) breaks the pool and every session in it: those are run again once in a new
-    pool (as the Ray executor retries a task), and fail with the error where it dies again."""
+    that dies (killed, out of memory) breaks the pool and every session in it: they go on in a new pool, those that
+    had started run once more (as the Ray executor retries a task) and fail where a worker dies under them again;
+    those still queued are only rescheduled."""
     memory = assign_devices(tasks)
     workers = min(workers or default_workers(os.cpu_count() or 1, memory, available_memory()), len(tasks))
     print(f"batch: {len(tasks)} session(s) on {workers} worker process(es)"
@@ -135,16 +142,19 @@ def run_local(tasks: list[SessionTask], progress: BatchProgress, workers: int | 
                                    initargs=(q, cpu_share(workers)))
 
     pool = new_pool()
-    pending, stopped = {}, False
+    pending, stopped, started = {}, False, set()
 
-    def settle(f) -> SessionTask | None:
-        """Record the result of finished future f; its session instead, to run again, where its worker died first."""
+    def settle(f) -> tuple[SessionTask, int] | None:
+        """Record the result of finished future f; (its session, the attempt to make next) instead where its pool
+        broke: a session that had started has used an attempt, a queued one has not."""
         t, attempt = pending.pop(f)
         try:
             r = f.result()
         except BrokenProcessPool as e:   # a worker process died: every session of the pool lands here
+            if t.index not in started:
+                return t, attempt
             if attempt == 1:
-                return t
+                return t, 2
             r = failed_result(t, RuntimeError(f"its worker process died, twice ({e})"))
         except Exception as e:  # noqa: BLE001 - a failure the worker could not report as a result
             r = failed_result(t, e)
@@ -157,15 +167,17 @@ def run_local(tasks: list[SessionTask], progress: BatchProgress, workers: int | 
         pending = {pool.submit(_run, t): (t, 1) for t in tasks}
         while pending:
             finished, _ = wait(pending, timeout=0.25, return_when=FIRST_COMPLETED)
-            _drain(q, progress)
-            again = [t for t in map(settle, finished) if t is not None]
+            _drain(q, progress, started)
+            again = [a for a in map(settle, finished) if a is not None]
             if again:   # the pool is broken: its other sessions end alike, at once
-                again += [t for t in map(settle, wait(pending)[0]) if t is not None]
-                print(f"batch: a worker process died; running {', '.join(t.name for t in again)} again in new "
-                      "worker processes", file=sys.stderr, flush=True)
+                again += [a for a in map(settle, wait(pending)[0]) if a is not None]
+                again.sort(key=lambda a: a[0].index)
+                print(f"batch: a worker process died; {', '.join(t.name for t, _ in again)} go on in new worker "
+                      "processes", file=sys.stderr, flush=True)
+                started.difference_update(t.index for t, _ in again)
                 pool.shutdown(wait=True)
                 pool = new_pool()
-                pending = {pool.submit(_run, t): (t, 2) for t in again}
+                pending = {pool.submit(_run, t): (t, attempt) for t, attempt in again}
     except KeyboardInterrupt:
         # the queued sessions cancelled, the running ones' workers stopped (their outputs are written whole or not
         # at all, without the completion marker: --resume runs them again); Python 3.14's terminate_workers()

@@ -146,25 +146,30 @@ def run_one(task: SessionTask, progress=None) -> dict:
     try:
         (out / COMPLETE_MARKER).unlink(missing_ok=True)
         on_frame = None if progress is None else (lambda done, total: progress.put((task.index, done, total)))
-        summary = run_session(task.session, quiet=True, on_frame=on_frame)
-        accuracy, notes = None, []
-        skipped = summary["frames_skipped"]
-        if skipped:   # frames that could not be read: the run is done, but not complete (--resume runs it again)
-            notes.append(f"{len(skipped)} frame(s) skipped, the first: frame {skipped[0]['frame']}: "
-                         f"{skipped[0]['error']}")
-        if (Path(task.session.recording.path) / "lighting_gt.json").is_file():
-            try:   # ground truth that does not score leaves the run done, its outputs whole
-                accuracy = accuracy_summary(score(out, task.session.recording.path))
-            except (ValueError, OSError) as e:
-                notes.append(f"not scored: {e}")
-        result = {"session": task.path, "name": task.name, "out": str(out), "status": "ok",
-                  "error": "; ".join(notes) or None, "traceback": None, "device": summary["device"],
-                  "frames": summary["frames_processed"], "frames_skipped": [sk["frame"] for sk in skipped],
-                  "wall_s": round(time.perf_counter() - t0, 3), "frames_per_s": summary["frames_per_s"],
-                  "accuracy": accuracy, "attempts": 1}
-        if not skipped:
-            write_json(out / COMPLETE_MARKER, {"session_sha256": task.digest, "result": result})
-        return result
+        outcome: dict = {}
+
+        def finish(summary: dict) -> None:   # the folder still the run's: no other run's files scored or marked
+            accuracy, notes = None, []
+            skipped = summary["frames_skipped"]
+            if skipped:   # frames that could not be read: the run is done, but not complete (--resume runs it again)
+                notes.append(f"{len(skipped)} frame(s) skipped, the first: frame {skipped[0]['frame']}: "
+                             f"{skipped[0]['error']}")
+            if (Path(task.session.recording.path) / "lighting_gt.json").is_file():
+                try:   # ground truth that does not score leaves the run done, its outputs whole
+                    accuracy = accuracy_summary(score(out, task.session.recording.path))
+                except (ValueError, OSError) as e:
+                    notes.append(f"not scored: {e}")
+            result = outcome["result"] = {
+                "session": task.path, "name": task.name, "out": str(out), "status": "ok",
+                "error": "; ".join(notes) or None, "traceback": None, "device": summary["device"],
+                "frames": summary["frames_processed"], "frames_skipped": [sk["frame"] for sk in skipped],
+                "wall_s": round(time.perf_counter() - t0, 3), "frames_per_s": summary["frames_per_s"],
+                "accuracy": accuracy, "attempts": 1}
+            if not skipped:
+                write_json(out / COMPLETE_MARKER, {"session_sha256": task.digest, "result": result})
+
+        run_session(task.session, quiet=True, on_frame=on_frame, after=finish)
+        return outcome["result"]
     except Exception as e:  # noqa: BLE001 - a failing session is reported, the batch goes on
         return failed_result(task, e, round(time.perf_counter() - t0, 3))
 

@@ -166,11 +166,10 @@ def write_report(results_dir: Path, md: Path, png: Path) -> None:
                   f"{run['size']}, {run['frames']} frames per recording, {run['spp']} spp."
                   + (f" Note: {run['note']}." if run.get("note") else ""), "",
                   "| scene | renderer | ms/frame | RMSE | si-RMSE | flicker |", "|---|---|---:|---:|---:|---:|"]
-        for r in run["rows"]:
-            ms = "-" if r["ms_mean"] is None else f"{r['ms_mean']:.1f}"
-            flicker = "-" if r.get("flicker") is None else f"{r['flicker']:.4f}"
-            lines.append(f"| {r['scene']} | {r['renderer']} | {ms} | {r['rmse']:.4f} | {r['si_rmse']:.4f} | "
-                         f"{flicker} |")
+        for r in run["rows"]:   # None: a figure the run could not make (JSON keeps no NaN)
+            cells = ["-" if r.get(k) is None else format(r[k], spec)
+                     for k, spec in (("ms_mean", ".1f"), ("rmse", ".4f"), ("si_rmse", ".4f"), ("flicker", ".4f"))]
+            lines.append(f"| {r['scene']} | {r['renderer']} | " + " | ".join(cells) + " |")
         lines.append("")
     write_text(md, "\n".join(lines))
     import matplotlib
@@ -182,7 +181,7 @@ def write_report(results_dir: Path, md: Path, png: Path) -> None:
     for k, run in enumerate(runs):
         names = sorted({r["renderer"] for r in run["rows"] if r["ms_mean"] is not None})
         for j, name in enumerate(names):
-            rs = [r for r in run["rows"] if r["renderer"] == name]
+            rs = [r for r in run["rows"] if r["renderer"] == name and r["si_rmse"] is not None]
             ax.scatter([r["ms_mean"] for r in rs], [r["si_rmse"] for r in rs], marker=markers[k % len(markers)],
                        color=f"C{j}", label=f"{name} ({run['device_name']}, {run['spp']} spp"
                                            + (f", {run['insert']})" if run.get("insert") else ")"))

@@ -4,6 +4,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import sys
 import tempfile
 from contextlib import contextmanager
 from pathlib import Path
@@ -73,18 +74,29 @@ def check_output_file(path: str | os.PathLike, option: str) -> None:
             return
 
 
-def hold_folder(path: str | os.PathLike, option: str) -> int:
+def hold_folder(path: str | os.PathLike, option: str) -> int | None:
     """An exclusive lock on the output folder `path` (flock on the folder itself): the file descriptor to close when
     done (or the process ends); ValueError naming it (`option`: what gave it) where another process holds it, since
-    two runs writing one folder would mix their files."""
+    two runs writing one folder would mix their files. None, with a warning on stderr, where its file system takes
+    no such lock (some network file systems): the run goes on unguarded."""
     import fcntl
 
-    fd = os.open(path, os.O_RDONLY)
+    try:
+        fd = os.open(path, os.O_RDONLY)
+    except OSError as e:
+        print(f"photoreg: warning: output folder {path} ({option}) cannot be locked ({e.strerror}): another run into "
+              "it would not be refused", file=sys.stderr)
+        return None
     try:
         fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
     except BlockingIOError:
         os.close(fd)
         raise ValueError(f"output folder {path} ({option}) is in use by another run: two runs writing one folder "
                          "would mix their files (wait for it, or choose another)") from None
+    except OSError as e:   # ENOLCK, EOPNOTSUPP, ...: no locks there
+        os.close(fd)
+        print(f"photoreg: warning: output folder {path} ({option}) cannot be locked ({e.strerror}): another run into "
+              "it would not be refused", file=sys.stderr)
+        return None
     return fd
 

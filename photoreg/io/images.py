@@ -193,11 +193,12 @@ def read_exr(path: str | os.PathLike) -> np.ndarray:
 
     with OpenEXR.File(str(path)) as f:
         ch = f.channels()
-        if "RGB" in ch:
-            return np.asarray(ch["RGB"].pixels, dtype=np.float32)
-        names = "RGB" if all(c in ch for c in "RGB") else "YYY" if "Y" in ch else None
+        for name in ("RGB", "RGBA"):
+            if name in ch:
+                return np.asarray(ch[name].pixels, dtype=np.float32)[..., :3]
+        names = "RGB" if all(c in ch for c in "RGB") else "YYY" if "Y" in ch and not {"RY", "BY"} & set(ch) else None
         if names is None:
-            raise ValueError(f"{path}: EXR channels {sorted(ch)}: expected R, G and B (or Y)")
+            raise ValueError(f"{path}: EXR channels {sorted(ch)}: expected R, G and B (or Y alone)")
         return np.stack([np.asarray(ch[c].pixels, dtype=np.float32) for c in names], axis=-1)
 
 

@@ -25,7 +25,7 @@ from websockets.sync.client import ClientConnection
 from websockets.sync.client import connect as ws_connect
 
 from ..io.ahead import Ahead
-from ..io.atomic import atomic_path, check_output_dir, write_json
+from ..io.atomic import atomic_path, check_output_dir, hold_folder, write_json
 from ..runner import Progress, StageTimes, against_recorded, clear_earlier, writer_threads
 from ..types import Frame, Intrinsics
 from .protocol import (CLIENT_RECONSTRUCTION_KEYS, ProtocolError, decode, decode_composite, encode, encode_frame,
@@ -306,9 +306,7 @@ def session_options(path: str | Path) -> dict:
 def stream_command(args) -> int:
     """`photoreg stream RECORDING --url URL`: replay a recording through a server, save the replies."""
     from ..config import check_pose_time_offset, load_session, select_frames
-    from ..io.poses import write_tum_trajectory
-    from ..io.recording import ReadAhead, open_recording
-    from ..recon.tracking import ate_against
+    from ..io.recording import open_recording
 
     offset = args.pose_time_offset
     if offset is None:
@@ -331,8 +329,24 @@ def stream_command(args) -> int:
     if args.window < 1:
         raise ValueError(f"--window must be >= 1 (frames in flight), got {args.window}")
     out = Path(args.out) if args.out else None
-    if out is not None:
+    lock = None
+    if out is not None:   # held while the stream writes there: another run or stream into it is refused
         check_output_dir(out, "--out")
+        out.mkdir(parents=True, exist_ok=True)
+        lock = hold_folder(out, "--out")
+    try:
+        return _stream(args, rec, indices, options, out)
+    finally:
+        if lock is not None:
+            os.close(lock)
+
+
+def _stream(args, rec, indices: list[int], options: dict, out: Path | None) -> int:
+    """stream_command's replay, into the output folder `out` it holds (None: no files)."""
+    from ..io.poses import write_tum_trajectory
+    from ..io.recording import ReadAhead
+    from ..recon.tracking import ate_against
+
     skipped: list[dict] = []
     progress = Progress(len(indices), args.quiet)
     t_hello = time.perf_counter()
@@ -341,10 +355,7 @@ def stream_command(args) -> int:
     hello_ms = round((time.perf_counter() - t_hello) * 1000.0, 1)   # connect, hello, ready
     frames = ReadAhead(rec, indices, on_error=lambda i, msg: skipped.append({"frame": i, "error": msg}),
                        threads=writer_threads())
-    partial = None
-    if out is not None:
-        out.mkdir(parents=True, exist_ok=True)
-        partial = open(out / "lighting.jsonl.partial", "w")
+    partial = None if out is None else open(out / "lighting.jsonl.partial", "w")
 
     tracked: dict[int, tuple[float, np.ndarray]] = {}   # frame -> (timestamp, pose) the server tracked (`track`)
 

@@ -117,6 +117,7 @@ class Connection:
         self.undecoded = 0               # frames received and neither queued nor reported yet
         self.wake = asyncio.Event()      # the queue has work
         self.idle = asyncio.Event()      # nothing decoding, queued or in the pipeline
+        self.authorized = False          # a hello with the server's token (if any) came
         self.idle.set()
         self.host: PipelineHost | None = None   # from hello on (a connection that never says hello costs none)
         self.intrinsics: Intrinsics | None = None
@@ -221,12 +222,12 @@ class Connection:
         hello_by = time.monotonic() + self.cfg.hello_timeout if self.cfg.token is not None else None
         while self.stop_reason is None:
             wait = idle_timeout
-            if hello_by is not None and self.host is None:   # no session yet: the hello's deadline
+            if hello_by is not None and not self.authorized:   # no hello with the token yet: its deadline
                 wait = min(max(hello_by - time.monotonic(), 0.0), wait or math.inf)
             try:
                 data = await asyncio.wait_for(self.ws.recv(), wait)
             except TimeoutError:
-                if hello_by is not None and self.host is None and time.monotonic() >= hello_by:
+                if hello_by is not None and not self.authorized and time.monotonic() >= hello_by:
                     return "no_hello"
                 if not self.idle.is_set():
                     continue  # the client waits for frames still in work: not idle
@@ -267,6 +268,7 @@ class Connection:
                                                                      token.encode()):
                 log.warning("%s: refused: missing or wrong token", self.peer)
                 return "unauthorized"
+        self.authorized = True
         hello = parse_hello(header, self.server.device, self.cfg.limits,
                             Path(self.cfg.meshes) if self.cfg.meshes is not None else None)
         hello.session.reconstruction.block_count = self.cfg.block_count

@@ -236,7 +236,7 @@ def generate(cfg: SynthConfig, log: Callable[[str], None] | None = print) -> Pat
     resolved = final.resolve()   # "." and a link to a folder have a name
     # the partial folder on OUT's own file system (an empty OUT may be a mount point): inside an existing OUT
     out = resolved / PARTIAL if final.exists() else resolved.with_name(resolved.name + ".partial")
-    if final.exists() and any(p != out for p in final.iterdir()):
+    if final.exists() and any(p.name != PARTIAL for p in final.iterdir()):
         raise ValueError(f"--out {final}: exists and is not an empty folder; remove it or choose another")
     if out.exists() or out.is_symlink():
         if not (out / PARTIAL_MARK).is_file():
