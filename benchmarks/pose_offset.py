@@ -109,7 +109,8 @@ def main() -> int:
         print(f"| {ms:+.1f} | {slide[ms]:.2f} / {s.mean():.2f} / {np.percentile(s, 90):.2f} | {rot[ms]:.2f} / "
               f"{steps:.3f} |", flush=True)
     c, d = min(slide, key=slide.get), min(rot, key=rot.get)
-    print(f"\ncolour frames: least slide at {c:+.1f} ms ({slide[c]:.2f} px): recording.pose_time_offset = {c / 1000:g}; "
+    print(f"\ncolour frames: least slide at {c:+.1f} ms ({slide[c]:.2f} px): recording.pose_time_offset = "
+          f"{c / 1000:g}; "
           f"depth images: best at {d:+.1f} ms after their own times ({rot[d]:.2f} deg)")
     return 0
 
