@@ -44,32 +44,43 @@ GRID = 16   # pixels between the slide's points
 LK = {"winSize": (31, 31), "maxLevel": 3}
 
 
-def colour_slide_px(recording: Path, frames: int, offset: float) -> np.ndarray:
-    """Per consecutive frame pair, the median distance (pixels) between where the poses at the frames' times +
-    `offset` carry the grid points of the first frame (by its depth) and where the optical flow of the colour
-    images takes them (points the flow tracks forward and back within half a pixel)."""
-    rec = open_recording(recording, pose_time_offset=offset)
-    K = rec.intrinsics.K
+def flow_pairs(recording: Path, frames: int) -> list[tuple[float, float, np.ndarray, np.ndarray, np.ndarray]]:
+    """Per consecutive pair of the first `frames` frames, once for every offset: (the two frames' times, the grid
+    points of the first frame that have depth, their depth, where the colour images' optical flow takes them), the
+    points the flow tracks forward and back within half a pixel."""
+    rec = open_recording(recording)
     v, u = np.mgrid[GRID // 2:rec.intrinsics.height:GRID, GRID // 2:rec.intrinsics.width:GRID]
     px = np.stack([u.ravel(), v.ravel()], 1).astype(np.float32)
-    out, prev = [], None
+    pairs, prev = [], None
     for i in range(min(frames, len(rec))):
         f = rec.frame(i)
         grey = cv2.cvtColor(f.color, cv2.COLOR_RGB2GRAY)
-        if prev is not None and f.pose is not None and prev[1] is not None:
-            g0, T0, d0 = prev
+        if prev is not None:
+            t0, g0, d0 = prev
             z = d0[px[:, 1].astype(int), px[:, 0].astype(int)]
             p0 = px[z > 0]
-            world = (np.c_[(p0 - K[:2, 2]) / [K[0, 0], K[1, 1]], np.ones(len(p0))] * z[z > 0, None]) @ T0[:3, :3].T \
-                + T0[:3, 3]
-            cam = (world - f.pose[:3, 3]) @ f.pose[:3, :3]
-            carried = cam[:, :2] / cam[:, 2:] * [K[0, 0], K[1, 1]] + K[:2, 2]
             p1, ok1, _ = cv2.calcOpticalFlowPyrLK(g0, grey, p0[:, None], None, **LK)
             back, ok2, _ = cv2.calcOpticalFlowPyrLK(grey, g0, p1, None, **LK)
-            ok = (ok1[:, 0] == 1) & (ok2[:, 0] == 1) & (np.linalg.norm(back[:, 0] - p0, axis=1) < 0.5) & (cam[:, 2] > 0)
-            if ok.any():
-                out.append(float(np.median(np.linalg.norm(p1[ok, 0] - carried[ok], axis=1))))
-        prev = (grey, f.pose, f.depth)
+            ok = (ok1[:, 0] == 1) & (ok2[:, 0] == 1) & (np.linalg.norm(back[:, 0] - p0, axis=1) < 0.5)
+            pairs.append((t0, f.timestamp, p0[ok], z[z > 0][ok], p1[ok, 0]))
+        prev = (f.timestamp, grey, f.depth)
+    return pairs
+
+
+def colour_slide_px(pairs, K: np.ndarray, gt_times: np.ndarray, gt_poses: np.ndarray, offset: float) -> np.ndarray:
+    """Per frame pair of flow_pairs, the median distance (pixels) between where the recorded poses at the frames'
+    times + `offset` carry the first frame's points (by their depth) and where the optical flow took them."""
+    out = []
+    for t0, t1, p0, z, p1 in pairs:
+        T0, T1 = interpolate_poses(gt_times, gt_poses, np.array([t0, t1]) + offset)
+        if T0 is None or T1 is None or not len(p0):
+            continue
+        world = (np.c_[(p0 - K[:2, 2]) / [K[0, 0], K[1, 1]], np.ones(len(p0))] * z[:, None]) @ T0[:3, :3].T + T0[:3, 3]
+        cam = (world - T1[:3, 3]) @ T1[:3, :3]
+        front = cam[:, 2] > 0
+        if front.any():
+            carried = cam[front, :2] / cam[front, 2:] * [K[0, 0], K[1, 1]] + K[:2, 2]
+            out.append(float(np.median(np.linalg.norm(p1[front] - carried, axis=1))))
     return np.array(out)
 
 
@@ -99,8 +110,9 @@ def main() -> int:
     print("| offset ms | colour frames: slide px, median / mean / 90th percentile of the frame pairs | depth images "
           "(tracked): orientations deg / frame-to-frame deg |\n|---|---|---|")
     slide, rot = {}, {}
+    pairs, K = flow_pairs(rec, args.frames), open_recording(rec).intrinsics.K
     for ms in np.arange(first, last + step / 2, step):
-        s = colour_slide_px(rec, args.frames, ms / 1000)
+        s = colour_slide_px(pairs, K, gt_times, gt_poses, ms / 1000)
         slide[ms] = float(np.median(s))
         gt = interpolate_poses(gt_times, gt_poses, depth_at + ms / 1000)
         keep = [k for k, g in enumerate(gt) if g is not None]

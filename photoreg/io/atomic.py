@@ -81,22 +81,19 @@ def hold_folder(path: str | os.PathLike, option: str) -> int | None:
     no such lock (some network file systems): the run goes on unguarded."""
     import fcntl
 
+    fd = None
     try:
         fd = os.open(path, os.O_RDONLY)
-    except OSError as e:
-        print(f"photoreg: warning: output folder {path} ({option}) cannot be locked ({e.strerror}): another run into "
-              "it would not be refused", file=sys.stderr)
-        return None
-    try:
         fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        return fd
     except BlockingIOError:
         os.close(fd)
         raise ValueError(f"output folder {path} ({option}) is in use by another run: two runs writing one folder "
                          "would mix their files (wait for it, or choose another)") from None
-    except OSError as e:   # ENOLCK, EOPNOTSUPP, ...: no locks there
-        os.close(fd)
+    except OSError as e:   # not readable, or ENOLCK, EOPNOTSUPP, ...: no locks there
+        if fd is not None:
+            os.close(fd)
         print(f"photoreg: warning: output folder {path} ({option}) cannot be locked ({e.strerror}): another run into "
               "it would not be refused", file=sys.stderr)
         return None
-    return fd
 

@@ -114,9 +114,10 @@ def open_tum(path: Path, native: bool, undistort: bool, pose_time_offset: float 
         depths = [path / depth_rows[j][1] for _, j in pairs]
 
     poses = None
-    if not (path / "groundtruth.txt").is_file() and pose_time_offset:
-        warnings.append("recording.pose_time_offset is set but there is no groundtruth.txt: no poses to offset")
-    if (path / "groundtruth.txt").is_file():
+    if not (path / "groundtruth.txt").is_file():
+        if pose_time_offset:
+            warnings.append("recording.pose_time_offset is set but there is no groundtruth.txt: no poses to offset")
+    else:
         gt_times, gt_poses = read_tum_trajectory(path / "groundtruth.txt")
         looked = times + pose_time_offset
         poses = interpolate_poses(gt_times, gt_poses, looked)
