@@ -21,6 +21,7 @@ from typing import Callable, Iterable
 
 import numpy as np
 from websockets.exceptions import ConnectionClosed, InvalidHandshake, InvalidURI
+from websockets.protocol import State
 from websockets.sync.client import ClientConnection
 from websockets.sync.client import connect as ws_connect
 
@@ -76,7 +77,12 @@ class Client:
         try:
             data = self.ws.recv(timeout)
         except TimeoutError:
-            return None
+            if self.ws.protocol.state is not State.CLOSED:
+                return None
+            # ended: websockets marks the state closed a moment before it closes its queue; once it has, the
+            # queue gives what is left in it, then ConnectionClosed
+            self.ws.recv_events_thread.join()
+            return self.recv(0)
         except ConnectionClosed as e:
             raise self._closed(e) from None
         header, payload = decode(data)
