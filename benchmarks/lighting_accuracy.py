@@ -253,7 +253,7 @@ def main() -> int:
         lines.append(f"| {label} | {method} | {fmt(r.get('direction_deg'), '.1f')} | "
                      f"{fmt(r.get('light_deg'), '.1f')} | {fmt(r.get('irradiance_si_rmse_upper'), '.3f')} | "
                      f"{fmt(r.get('colour_deg'), '.1f')} | "
-                     f"{r['flicker']:.3f} | {fmt(r['heldout'], '.3f')} | {r['weak']}/{r['frames']} | "
+                     f"{fmt(r['flicker'], '.3f')} | {fmt(r['heldout'], '.3f')} | {r['weak']}/{r['frames']} | "
                      f"{r['solve_ms']:.0f} |")
     if ablation:
         gt_cases = [label for label, path, _, _ in cases if (path / "lighting_gt.json").is_file()]

@@ -587,7 +587,8 @@ def test_flicker_metric():
     jumpy = [f * (1 + 0.3 * (i % 2)) for i in range(6)]
     assert metrics.flicker(jumpy) > 0.1
     assert math.isclose(metrics.flicker([x * 1e3 for x in jumpy]), metrics.flicker(jumpy), rel_tol=1e-6)
-    assert metrics.flicker([f, np.full_like(f, np.nan), f]) == 0.0 and metrics.flicker([f]) == 0.0
+    assert metrics.flicker([f, np.full_like(f, np.nan), f]) is None and metrics.flicker([f]) is None
+    assert metrics.flicker([f, np.full_like(f, np.nan), f, f * 2]) > 0.1   # the one usable pair counts
 
 
 def test_sample_agreement_with_depth():

@@ -289,8 +289,13 @@ def test_score_composite_end_to_end(tmp_path, capsys):
 def test_score_composite_without_inserts(tmp_path):
     lighting = sun_sky_gt()
     out, rec = write_run(tmp_path, lighting, [lighting])
-    c = score(out, rec, composite=True)["composite"]           # nothing to compare with: said, not a crash
+    result = score(out, rec, composite=True)
+    c = result["composite"]           # nothing to compare with: said, not a crash
     assert c["notes"] == ["no insert renders"] and c["flicker"] is None and "metrics" not in c
+    # one frame: no pair to take a flicker of (was 0, a perfectly stable sequence)
+    assert result["lighting"]["flicker"] is None
+    flicker_lines = [ln.split() for ln in format_report(result).splitlines() if "flicker" in ln]
+    assert flicker_lines == [["flicker", "(sequence)", "-"]]
 
 
 def test_flip_when_installed():

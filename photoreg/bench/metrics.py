@@ -121,26 +121,24 @@ def _flicker_view() -> np.ndarray:
 FLICKER_VIEW = _flicker_view()
 
 
-def flicker(sequence, size: int = 64) -> float:
+def flicker(sequence, size: int = 64) -> float | None:
     """Flicker E = mean over disc pixels, channels and consecutive frame pairs of exp(3 |I_t - I_(t-1)|) - 1,
     I_t the diffuse sphere lit by estimate t (photoreg.lighting.visualize.lit_sphere, fixed view FLICKER_VIEW).
 
     The images of a sequence share one scale, its 99th percentile pixel (so E ignores the estimate's
     arbitrary albedo scale but sees every per-frame jump); pairs with a non-finite estimate are skipped;
-    0 for fewer than two usable frames."""
+    None where no consecutive pair is usable (no pair: not a flicker of 0, as image_flicker)."""
     imgs = [lit_sphere(np.asarray(f, dtype=np.float64), FLICKER_VIEW, size) if np.isfinite(f).all() else None
             for f in sequence]
     u = (np.arange(size) + 0.5) / size * 2 - 1
     disc = (u[None, :] ** 2 + u[:, None] ** 2) < 1
-    finite = [i[disc] for i in imgs if i is not None]
-    if len(finite) < 2:
-        return 0.0
-    ref = float(np.percentile(np.stack(finite), 99))
+    pairs = [(a[disc], b[disc]) for a, b in zip(imgs, imgs[1:]) if a is not None and b is not None]
+    if not pairs:
+        return None
+    ref = float(np.percentile(np.stack([i[disc] for i in imgs if i is not None]), 99))
     if not ref > 0:
-        return 0.0
-    terms = [np.mean(np.exp(3.0 * np.abs(b[disc] - a[disc]) / ref) - 1.0)
-             for a, b in zip(imgs, imgs[1:]) if a is not None and b is not None]
-    return float(np.mean(terms)) if terms else 0.0
+        return 0.0   # every sphere black: nothing changed
+    return float(np.mean([np.mean(np.exp(3.0 * np.abs(b - a) / ref) - 1.0) for a, b in pairs]))
 
 
 def changed_region(composites, cameras, tolerance: float = 1e-3) -> np.ndarray:

@@ -481,7 +481,7 @@ def format_report(result: dict) -> str:
              f"{lt['n_frames']} frames, {lt['n_scored']} scored, non-finite or missing "
              f"{lt['n_nonfinite'] + lt['n_missing']} ({100 * lt['nonfinite_fraction']:.1f}%)"]
     lines += _table(lt["metrics"])
-    lines.append(f"  {'flicker (sequence)':28s}{lt['flicker']:10.4g}")
+    lines.append(f"  {'flicker (sequence)':28s}{'-' if lt['flicker'] is None else format(lt['flicker'], '10.4g'):>10s}")
     lines += [f"  note: {n}" for n in lt["notes"]]
     if "composite" in result:
         c = result["composite"]
