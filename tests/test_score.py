@@ -227,6 +227,13 @@ def test_score_command_prints_and_writes_json(tmp_path, capsys):
     assert "lighting.jsonl" in capsys.readouterr().err
     assert cli_main(["score", str(out), "--gt", str(rec), "--json", str(tmp_path / "res")]) == 2   # a folder
     assert f"{tmp_path / 'res'} (--json) is a folder" in capsys.readouterr().err
+    # a file of the run's is not overwritten; scores written there before are
+    run_file = out / "lighting.jsonl"
+    kept = run_file.read_bytes()
+    assert cli_main(["score", str(out), "--gt", str(rec), "--json", str(run_file)]) == 2
+    assert "is the run's file" in capsys.readouterr().err and run_file.read_bytes() == kept
+    assert cli_main(["score", str(out), "--gt", str(rec), "--json", str(out / "scores.json")]) == 0
+    assert cli_main(["score", str(out), "--gt", str(rec), "--json", str(out / "scores.json")]) == 0
 
 
 # --- composites --------------------------------------------------------------------------------------

@@ -497,10 +497,28 @@ def format_report(result: dict) -> str:
     return "\n".join(lines)
 
 
+def _check_not_an_input(json_out: str, out: str, recording: str) -> None:
+    """Refuse a --json path that is an existing file of the run or of the recording (OUT/summary.json, say), unless
+    it holds scores written before: writing there would replace what was scored."""
+    target = Path(json_out).resolve()
+    if not target.is_file():
+        return
+    for folder, whose in ((out, "the run's"), (recording, "the recording's")):
+        if target.is_relative_to(Path(folder).resolve()):
+            try:
+                earlier = json.loads(target.read_text())
+            except (OSError, ValueError):
+                earlier = None
+            if not (isinstance(earlier, dict) and {"out", "recording", "lighting"} <= earlier.keys()):
+                raise FileExistsError(f"{json_out} (--json) is {whose} file, not scores written before: writing "
+                                      "the scores there would replace it; give another path")
+
+
 def score_command(args) -> int:
     """CLI entry: print the report, write --json atomically when given."""
     if getattr(args, "json_out", None):
         check_output_file(args.json_out, "--json")
+        _check_not_an_input(args.json_out, args.out, args.gt)
     result = score(args.out, args.gt, composite=bool(getattr(args, "composite", False)))
     if getattr(args, "json_out", None):
         write_json(args.json_out, result)
