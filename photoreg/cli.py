@@ -150,7 +150,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--session", help="ask for what `photoreg run SESSION` does: the session file's [lighting], "
                                      "[render], the client-settable [reconstruction] keys, [[objects]] (meshes "
                                      "named by file name in the server's --meshes) and recording.use_poses = "
-                                     "false as track (its frames and device are not sent)")
+                                     "false as track; RECORDING is read as its [recording] says (format, "
+                                     "undistort, pose_time_offset) and its frames are sent unless --frames is "
+                                     "given (its device is the server's to choose)")
     p.add_argument("--render-stride", type=int, help="ask the server to sample the objects' shadows every n-th "
                                                      "pixel (render.stride, default 4)")
     p.add_argument("--composite", choices=["jpeg", "png"], help="encoding of the composites the server sends for "

@@ -10,6 +10,13 @@ py=${PYTHON:-python3}
 
 # Debian packages: libusb (open3d import), EGL/OSMesa (pyrender offscreen), LLVM 19 (Mitsuba llvm_ad_rgb).
 debs="libusb-1.0-0 libgomp1 libegl1 libgl1 libegl-mesa0 libgl1-mesa-dri libosmesa6 libllvm19"
+# A system Python that is externally managed (PEP 668: Debian 12, Ubuntu 23.04+) refuses pip outside a virtual
+# environment: then photoreg goes into .venv/ (python3-venv makes it), which `. scripts/activate.sh` puts on PATH.
+managed=$($py -c 'import os, sys, sysconfig; print(int(sys.prefix == sys.base_prefix and os.path.exists(
+    os.path.join(sysconfig.get_path("stdlib"), "EXTERNALLY-MANAGED"))))')
+if [ "$managed" = 1 ]; then
+  debs="$debs python3-venv"
+fi
 if command -v apt-get >/dev/null 2>&1; then
   missing=$(for d in $debs; do dpkg -s "$d" >/dev/null 2>&1 || echo "$d"; done)
   if [ -n "$missing" ]; then
@@ -29,6 +36,12 @@ if [ "${PHOTOREG_CUDA:-}" = 1 ] || { command -v nvidia-smi >/dev/null 2>&1 && nv
 else
   o3d=cpu
 fi
+if [ "$managed" = 1 ]; then
+  [ -x .venv/bin/python ] || $py -m venv .venv
+  py=.venv/bin/python
+  echo "install.sh: $($py -c 'import sys; print(sys.base_prefix)')'s Python is externally managed (PEP 668):" \
+       "installing into .venv/ (. scripts/activate.sh puts it on PATH)"
+fi
 $py -m pip install -q --upgrade pip
 $py -m pip install -q -e ".[$o3d,$extras]"
 # Opt-in training extra (PHOTOREG_TRAIN=1): PyTorch's CPU build from its own index, then the `train` extra.
@@ -40,4 +53,4 @@ fi
 if [[ ",$extras," == *",render,"* ]]; then
   $py -m pip install -q --no-deps "PyOpenGL==3.1.10"
 fi
-echo "photoreg installed (open3d: $o3d, extras: $extras)"
+echo "photoreg installed (open3d: $o3d, extras: $extras)$([ "$managed" = 1 ] && echo " in .venv/")"

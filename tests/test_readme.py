@@ -32,6 +32,7 @@ TINY_SYNTH = {"--frames": "2", "--size": "64x48", "--spp": "4"}
 #   docker: not run; checked against docker/ and the README's other docker commands
 COMMANDS: dict[str, tuple[str, dict]] = {
     "bash scripts/install.sh": ("ci", {}),
+    ". scripts/activate.sh": ("ci", {}),
     "photoreg demo": ("run", SMALL),
     "python3 -m pytest": ("ci", {}),
     "photoreg run path/to/recording --out out/rec": ("run", SMALL),
@@ -59,9 +60,11 @@ COMMANDS: dict[str, tuple[str, dict]] = {
         ("run", {"--size": "64x48", "--frames": "3", "--spp": "4", "--warmup": "1", "--strides": "8",
                  "--rays": "8", "--bands": "2", "--device": "cpu", "--synth-dir": "gen/sweep",
                  "--csv": "out/sweep.csv", "--plot": "out/sweep.png"}),
-    "photoreg bench renderers --scenes tabletop,corner --size 160x120 --frames 8":
+    "photoreg bench renderers --scenes tabletop,corner --size 160x120 --frames 8 --results-dir /tmp/r "
+    "--md /tmp/r/renderers.md --plot /tmp/r/renderers.png":
         ("run", {"--scenes": "tabletop", "--size": "64x48", "--frames": "3", "--spp": "4", "--device": "cpu",
-                 "--synth-dir": "gen/bench"}),
+                 "--synth-dir": "gen/bench", "--results-dir": "out/r", "--md": "out/r/renderers.md",
+                 "--plot": "out/r/renderers.png"}),
     "photoreg bench speed path/to/recording --device cuda --stride 4 --rays 169 --bands 4":
         ("run", {"--device": "cpu", "--rays": "8", "--frames": "0:3", "--warmup": "1"}),
     "photoreg bench speed sessions/demo.toml --device cpu": ("run", {"--rays": "8", "--bands": "3", "--frames": "0:3",
@@ -71,9 +74,11 @@ DOCKER_VALUE_OPTIONS = {"-v", "--volume", "-p", "--publish", "-e", "--env", "--g
 
 
 def readme_commands() -> list[str]:
-    """The README's ```bash blocks, one entry per command: comments dropped, `&&` chains split."""
+    """The README's ```bash blocks, one entry per command: comments dropped, `\\` continuations joined, `&&` chains
+    split."""
     blocks = re.findall(r"^```bash\n(.*?)^```", (REPO / "README.md").read_text(), re.M | re.S)
-    lines = [re.sub(r"\s+#.*$", "", line).strip() for block in blocks for line in block.splitlines()]
+    joined = [re.sub(r"\\\n\s*", "", block) for block in blocks]
+    lines = [re.sub(r"\s+#.*$", "", line).strip() for block in joined for line in block.splitlines()]
     return [cmd.strip() for line in lines if line for cmd in line.split("&&")]
 
 

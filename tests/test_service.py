@@ -469,6 +469,20 @@ def test_asynchronous_lighting_through_the_server(server, recording, tmp_path):
     assert not left()
 
 
+def test_stream_reads_the_recording_as_its_session_says(server, recording, tmp_path, capsys):
+    """`photoreg stream REC --session S.toml` opens REC as `photoreg run S.toml` opens its recording: the session's
+    [recording] format (before: autodetected, whatever the session said) and its frames unless --frames is given."""
+    session = tmp_path / "s.toml"
+    session.write_text('frames = "1:3"\n[recording]\npath = "elsewhere"\nformat = "redwood"\n')
+    assert main(["stream", str(recording), "--url", server.server.url, "--session", str(session), *STREAM_ARGS]) == 2
+    assert "no color/ or image/ folder" in capsys.readouterr().err
+    session.write_text('frames = "1:3"\n[recording]\npath = "elsewhere"\nformat = "native"\n')
+    records, _ = stream(recording, server.server.url, tmp_path / "out", "--session", str(session))
+    assert [r["frame"] for r in records] == [1, 2]
+    records, _ = stream(recording, server.server.url, tmp_path / "out2", "--session", str(session), "--frames", "1")
+    assert [r["frame"] for r in records] == [0]
+
+
 def test_streamed_composites_equal_the_direct_pipeline_s(tmp_path):
     """`photoreg stream data/demo --session data/demo/session.toml --composite png --every 2 --render-stride 2`
     through a server whose mesh folder holds the demo's object: each frame's composite arrives (after its lighting)

@@ -311,15 +311,16 @@ def session_options(path: str | Path) -> dict:
 
 def stream_command(args) -> int:
     """`photoreg stream RECORDING --url URL`: replay a recording through a server, save the replies."""
-    from ..config import check_pose_time_offset, load_session, select_frames
+    from ..config import Session, check_pose_time_offset, load_session, select_frames
     from ..io.recording import open_recording
 
-    offset = args.pose_time_offset
-    if offset is None:
-        offset = load_session(args.session, files=False).recording.pose_time_offset if args.session else 0.0
+    # RECORDING opened as `photoreg run SESSION` opens the session's: its format, undistortion, pose offset, frames
+    session = load_session(args.session, files=False) if args.session else Session()
+    offset = session.recording.pose_time_offset if args.pose_time_offset is None else args.pose_time_offset
     check_pose_time_offset(offset, "--pose-time-offset")
-    rec = open_recording(args.recording, pose_time_offset=offset)
-    indices = select_frames(args.frames or "", len(rec), args.recording)
+    rec = open_recording(args.recording, fmt=session.recording.format, undistort=session.recording.undistort,
+                         pose_time_offset=offset)
+    indices = select_frames(args.frames or session.frames, len(rec), args.recording)
     options: dict = session_options(args.session) if args.session else {}
     lighting = {k: v for k, v in (("bands", args.bands), ("rays", args.rays), ("stride", args.stride),
                                   ("ray_length", args.ray_length), ("every", args.every),
