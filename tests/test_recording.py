@@ -5,6 +5,8 @@ from __future__ import annotations
 import dataclasses
 import json
 import re
+import struct
+import zlib
 from pathlib import Path
 
 import cv2
@@ -363,6 +365,50 @@ def test_tum_defaults_from_folder_name(tmp_path):
 
 # --- bad input ------------------------------------------------------------------------------------------
 
+def test_depth_in_openexr_files(tmp_path):
+    """Float depth in OpenEXR files (one channel, or Z among several) is read through OpenEXR (OpenCV's EXR reader is
+    off in its wheels: every frame was a raw cv2.error)."""
+    import OpenEXR
+
+    write_native(tmp_path)
+    metres = np.random.default_rng(1).uniform(0.5, 3.0, (H, W)).astype(np.float32)
+    header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
+    OpenEXR.File(header, {"Z": metres}).write(str(tmp_path / "depth/000001.exr"))
+    OpenEXR.File(header, {"Z": metres, "A": metres * 0}).write(str(tmp_path / "depth/000002.exr"))
+    _replace(tmp_path / "depth.txt", "depth/000001.png", "depth/000001.exr")
+    _replace(tmp_path / "depth.txt", "depth/000002.png", "depth/000002.exr")
+    _replace(tmp_path / "intrinsics.json", f'"depth_scale": {DEPTH_SCALE}', '"depth_scale": 1.0')
+    rec = open_recording(tmp_path)
+    for i in (1, 2):
+        np.testing.assert_array_equal(rec.frame(i).depth, metres)
+    OpenEXR.File(header, {"P": metres, "Q": metres}).write(str(tmp_path / "depth/000002.exr"))
+    with pytest.raises(ValueError, match="000002.exr: depth EXR with channels P, Q"):
+        rec.frame(2)
+
+
+def test_colour_is_read_as_stored_whatever_its_exif_orientation(tmp_path):
+    """A JPEG tagged upside down (EXIF orientation 3, as phones write) is read as its pixels are stored, as its depth
+    is (OpenCV's IMREAD_COLOR turned it: colour and depth misregistered without a word); the server alike."""
+    from PIL import Image
+
+    from photoreg.io.images import read_rgb
+    from photoreg.service.protocol import _decode_color
+
+    rng = np.random.default_rng(2)
+    pixels = np.kron(rng.integers(0, 256, (6, 8, 3)), np.ones((8, 8, 1))).astype(np.uint8)
+    exif = Image.Exif()
+    exif[0x0112] = 3
+    path = tmp_path / "turned.jpg"
+    Image.fromarray(pixels).save(path, quality=95, exif=exif)
+    plain = tmp_path / "plain.jpg"
+    Image.fromarray(pixels).save(plain, quality=95)
+    assert np.array_equal(read_rgb(path), read_rgb(plain))
+    got = read_rgb(path).astype(int)
+    assert np.abs(got - pixels).mean() < 0.2 * np.abs(got - pixels[::-1, ::-1]).mean()   # not turned
+    intr = Intrinsics(64, 48, 50.0, 50.0, 31.5, 23.5)
+    assert np.array_equal(_decode_color("jpeg", path.read_bytes(), intr), read_rgb(plain))
+
+
 def test_iter_frames_reports_corrupt_frame(tmp_path):
     write_native(tmp_path)
     bad = tmp_path / "rgb/000001.png"
@@ -534,14 +580,25 @@ def test_a_jpeg_cut_short_is_an_error_naming_it(tmp_path):
         _decode_color("jpeg", data[:len(data) // 2], intr)
 
 
-@pytest.mark.parametrize("case", ["missing image", "corrupt depth", "8-bit depth", "size mismatch",
-                                  "size differs from intrinsics"])
+@pytest.mark.parametrize("case", ["missing image", "empty depth", "a header past OpenCV's limits", "corrupt depth",
+                                  "8-bit depth", "size mismatch", "size differs from intrinsics"])
 def test_frame_errors_name_file(tmp_path, case):
+    """A frame's bad image is a ValueError or FileNotFoundError naming it (an empty file and a size past OpenCV's
+    limits were raw cv2.error, which ended a run instead of skipping the frame)."""
     write_native(tmp_path)
     color, depth = tmp_path / "rgb/000001.png", tmp_path / "depth/000001.png"
     if case == "missing image":
         color.unlink()
         where = color
+    elif case == "empty depth":
+        depth.write_bytes(b"")
+        where = depth
+    elif case == "a header past OpenCV's limits":   # a 70000 x 70000 PNG's header, its checksum right
+        data = bytearray(depth.read_bytes())
+        data[16:24] = struct.pack(">II", 70000, 70000)
+        data[29:33] = struct.pack(">I", zlib.crc32(bytes(data[12:29])))
+        depth.write_bytes(bytes(data))
+        where = depth
     elif case == "corrupt depth":
         depth.write_bytes(b"\x89PNG garbage")
         where = depth

@@ -114,27 +114,63 @@ def jpeg_cut_short(data: bytes) -> bool:
                 break
 
 
+# Colour decoded as stored: OpenCV's IMREAD_COLOR turns an image by its EXIF orientation, which depth (read
+# unchanged) is not, so a phone's upside-down JPEG came out turned against its depth.
+COLOR_FLAGS = cv2.IMREAD_COLOR | cv2.IMREAD_IGNORE_ORIENTATION
+
+
 def _imread(path: str | os.PathLike, flags: int, what: str) -> np.ndarray:
-    """cv2.imdecode of the file with errors that name it: missing, not a readable `what`, or a JPEG cut short."""
+    """cv2.imdecode of the file with errors that name it: missing, empty, not a readable `what` (OpenCV's own
+    errors, e.g. a header claiming a size past its limits, among them), or a JPEG cut short."""
     try:
         data = Path(path).read_bytes()
     except (FileNotFoundError, IsADirectoryError):
         raise FileNotFoundError(f"{path}: no such file") from None
+    if not data:
+        raise ValueError(f"{path}: empty file (0 bytes)")
     if jpeg_cut_short(data):
         raise ValueError(f"{path}: JPEG data cut short (no end-of-image marker after the last scan)")
-    img = cv2.imdecode(np.frombuffer(data, np.uint8), flags)
+    try:
+        img = cv2.imdecode(np.frombuffer(data, np.uint8), flags)
+    except cv2.error as e:
+        raise ValueError(f"{path}: not a readable {what} ({str(e).strip().splitlines()[-1]})") from None
     if img is None:
         raise ValueError(f"{path}: not a readable {what}")
     return img
 
 
 def read_rgb(path: str | os.PathLike) -> np.ndarray:
-    """Any colour image OpenCV reads -> HxWx3 uint8 RGB; clear error naming the file."""
-    return cv2.cvtColor(_imread(path, cv2.IMREAD_COLOR, "colour image"), cv2.COLOR_BGR2RGB)
+    """Any colour image OpenCV reads -> HxWx3 uint8 RGB, its pixels as stored (COLOR_FLAGS); clear error naming
+    the file."""
+    return cv2.cvtColor(_imread(path, COLOR_FLAGS, "colour image"), cv2.COLOR_BGR2RGB)
+
+
+DEPTH_EXR_CHANNELS = ("Z", "Y", "R", "depth", "distance")   # a depth EXR's channel where it has several
+
+
+def _read_exr_depth(path: str | os.PathLike) -> np.ndarray:
+    """The depth channel of an OpenEXR file (its only channel, else the first of DEPTH_EXR_CHANNELS it has) as
+    float32: OpenCV's EXR reader is disabled in its wheels."""
+    import OpenEXR
+
+    try:
+        with OpenEXR.File(str(path), separate_channels=True) as f:
+            ch = f.channels()
+            names = list(ch) if len(ch) == 1 else [n for n in DEPTH_EXR_CHANNELS if n in ch]
+            if not names:
+                raise ValueError(f"{path}: depth EXR with channels {', '.join(sorted(ch))}: expected one channel, "
+                                 f"or one named {', '.join(DEPTH_EXR_CHANNELS)}")
+            return np.asarray(ch[names[0]].pixels, dtype=np.float32)
+    except (RuntimeError, OSError) as e:
+        raise ValueError(f"{path}: not a readable depth image ({e})") from None
 
 
 def read_depth_raw(path: str | os.PathLike) -> np.ndarray:
     """Single-channel 16-bit or float depth image in its stored units (not metres); clear error naming the file."""
+    if Path(path).suffix.lower() == ".exr":
+        if not Path(path).is_file():
+            raise FileNotFoundError(f"{path}: no such file")
+        return _read_exr_depth(path)
     img = _imread(path, cv2.IMREAD_UNCHANGED, "depth image")
     if img.ndim != 2:
         raise ValueError(f"{path}: depth image has {img.shape[2]} channels, expected 1")

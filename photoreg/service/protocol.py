@@ -20,7 +20,7 @@ import cv2
 import numpy as np
 
 from ..config import LightingConfig, ObjectConfig, ReconstructionConfig, RenderConfig, Session, _fill, validate
-from ..io.images import after_fill, jpeg_cut_short, registered_depth
+from ..io.images import COLOR_FLAGS, after_fill, jpeg_cut_short, registered_depth
 from ..io.intrinsics import checked_intrinsics
 from ..io.native import depth_to_png16
 from ..io.poses import check_pose
@@ -484,7 +484,7 @@ def _decode_color(enc: str, data: bytes, intr: Intrinsics) -> np.ndarray:
         raise ProtocolError("bad_image", f"frame.color: {e}") from None
     if size != (w, h):
         raise ProtocolError("bad_image", f"frame.color: image is {size[0]}x{size[1]}, the intrinsics say {w}x{h}")
-    img = None if jpeg_cut_short(data) else cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR)
+    img = None if jpeg_cut_short(data) else cv2.imdecode(np.frombuffer(data, np.uint8), COLOR_FLAGS)
     if img is None or img.shape[:2] != (h, w):
         raise ProtocolError("bad_image", f"frame.color: corrupt {enc} data")
     return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
