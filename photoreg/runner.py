@@ -74,7 +74,7 @@ def session_from_args(args) -> Session:
             raise FileNotFoundError(f"{src}: no such recording folder or session file")
         s = Session()
         s.recording.path = str(src.resolve())
-        s.output.dir = str(Path("out") / src.name)
+        s.output.dir = str(Path("out") / src.resolve().name)
     if args.out:
         s.output.dir = args.out
     if args.frames:

@@ -406,3 +406,16 @@ def test_a_folder_another_run_writes_is_refused(tmp_path, capsys):
     assert f"output folder {out} (--out / [output] dir) cannot be locked (No locks available)" in \
         capsys.readouterr().err
 
+
+
+def test_a_bare_recording_s_default_output_is_named_after_its_folder(tmp_path, monkeypatch):
+    """`photoreg run ..` from inside a recording writes out/<the recording's name>, not out/.. (the working folder,
+    whose files of an earlier run's names it cleared: a user's trajectory.txt among them)."""
+    from photoreg.cli import build_parser
+    from photoreg.runner import session_from_args
+
+    (tmp_path / "scene" / "depth").mkdir(parents=True)
+    monkeypatch.chdir(tmp_path / "scene" / "depth")
+    for given in ("..", "../.", str(tmp_path / "scene")):
+        s = session_from_args(build_parser().parse_args(["run", given]))
+        assert Path(s.output.dir) == Path("out") / "scene", given
