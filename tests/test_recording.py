@@ -677,6 +677,22 @@ def _write_redwood(root: Path, icl_path: Path, n: int, ext: str) -> Path:
     return log
 
 
+def test_the_first_frames_of_a_redwood_sequence_with_its_whole_log(tmp_path, icl_path):
+    """Three frames kept with the sequence's whole .log (was refused: 'frame 3 out of range'): each has its pose, the
+    other records are unused and noted; a log of none of the frames is warned of."""
+    root = tmp_path / "icl"
+    log = _write_redwood(root, icl_path, 3, "png")
+    whole = open(icl_path / "trajectory_open3d_estimated.log").readlines()
+    log.write_text("".join(whole[:5 * 10]))
+    rec = open_recording(root)
+    assert rec.has_poses and all(p is not None for p in rec.poses) and not rec.warnings
+    assert "trajectory.log: 7 record(s) of frames past the recording's last unused" in rec.notes
+    log.write_text("".join(whole[5 * 5:5 * 10]))   # frames 5-9 only
+    rec = open_recording(root)
+    assert not rec.has_poses and rec.warnings == ["trajectory.log gives none of the 3 frames a pose: the camera is "
+                                                  "tracked"]
+
+
 def test_redwood_errors(tmp_path, icl_path):
     root = tmp_path / "icl"
     log = _write_redwood(root, icl_path, 3, "jpg")
@@ -687,8 +703,10 @@ def test_redwood_errors(tmp_path, icl_path):
     assert f"{log}:7" in str(_open_error(root))
     _replace(log, "1 1 2\n1.99999139", "x 1 2\n0.99999139")
     assert f"{log}:6" in str(_open_error(root))
-    _replace(log, "x 1 2\n", "7 7 8\n")
-    assert f"{log}:6: frame 7 out of range" in str(_open_error(root))
+    _replace(log, "x 1 2\n", "7 7 8\n")   # a record past the last frame: unused, and said
+    rec = open_recording(root)
+    assert rec.poses[1] is None and rec.poses[0] is not None and rec.poses[2] is not None
+    assert "trajectory.log: 1 record(s) of frames past the recording's last unused" in rec.notes
     _replace(log, "7 7 8\n", "1 1 2\n")
 
     with pytest.raises(ValueError, match="no distortion coefficients"):

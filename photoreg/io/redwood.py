@@ -68,11 +68,12 @@ def pair_frames(color_dir: Path, depth_dir: Path) -> tuple[list[int] | None, lis
     return None, list(colors.values()), list(depths.values()), ["colour and depth images paired in name order"]
 
 
-def read_log(path: Path, numbers: list[int] | None, n_frames: int) -> list[np.ndarray | None]:
+def read_log(path: Path, numbers: list[int] | None, n_frames: int) -> tuple[list[np.ndarray | None], int]:
     """Redwood .log: per pose a line `id id frame` then 4 rows of a 4x4 camera-to-world matrix. The id is the
     frame's number (`numbers`, pair_frames') where that matches at least as many records as its 0-based position
     does (a folder with frames missing, or a part of a sequence; a record of a missing frame is unused), else the
-    position. Frames it does not list get None."""
+    position. Returns the poses (None for frames it does not list) and the count of records past the recording's
+    last frame (the first frames of a sequence kept with its whole log), which are unused."""
     rows = data_lines(path)
     records = []
     for k in range(0, len(rows), 5):
@@ -89,14 +90,12 @@ def read_log(path: Path, numbers: list[int] | None, n_frames: int) -> list[np.nd
     last = max(position)
     poses: list[np.ndarray | None] = [None] * n_frames
     for lineno, i, k in records:
-        if i > last:
-            raise ValueError(f"{path}:{lineno}: frame {i} out of range (the recording's last is {last})")
         if i not in position:
             continue
         if poses[position[i]] is not None:
             raise ValueError(f"{path}:{lineno}: second pose for frame {i}")
         poses[position[i]] = read_matrix4(rows[k + 1:k + 5], path)
-    return poses
+    return poses, sum(i > last for _, i, _ in records)
 
 
 def open_redwood(path: Path, undistort: bool) -> Recording:
@@ -112,11 +111,16 @@ def open_redwood(path: Path, undistort: bool) -> Recording:
     logs = sorted(path.glob("*.log"))
     if len(logs) > 1:
         raise ValueError(f"{path}: several .log trajectories ({', '.join(p.name for p in logs)}); keep one")
-    poses = read_log(logs[0], numbers, len(colors)) if logs else None
+    poses, warnings = None, []
     if logs:
+        poses, past = read_log(logs[0], numbers, len(colors))
         notes.append(f"poses from {logs[0].name}")
+        if past:
+            notes.append(f"{logs[0].name}: {past} record(s) of frames past the recording's last unused")
+        if not any(p is not None for p in poses):
+            warnings.append(f"{logs[0].name} gives none of the {len(colors)} frames a pose: the camera is tracked")
     return Recording(path=path, format="redwood", intrinsics=calib.intrinsics,
                      timestamps=np.asarray(numbers if numbers is not None else range(len(colors)), float) / FPS,
                      color_files=colors, depth_files=depths, poses=poses, distortion=calib.distortion,
-                     undistort=undistort, notes=notes,
+                     undistort=undistort, notes=notes, warnings=warnings,
                      shutter=calib.shutter)
