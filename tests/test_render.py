@@ -3,6 +3,7 @@ shadows, differential compositing. Small frames and few rays, so the whole file 
 from __future__ import annotations
 
 import math
+import re
 from pathlib import Path
 
 import cv2
@@ -819,6 +820,33 @@ def test_textured_object_composites_its_texture(tmp_path):
     assert top.sum() > 30 and np.ptp(gb.albedo[top], axis=0).min() > 0.2   # several texels of other colours
     shading = out[top] / gb.albedo[top]
     assert np.all(np.isfinite(out)) and np.ptp(shading, axis=0).max() < 0.02 * shading.mean(), np.ptp(shading, 0)
+
+
+def test_an_obj_s_texture_16_bit_grey_or_missing(tmp_path):
+    """A 16-bit grey texture (0x4000) gives its albedo (8-bit 64: linear 0.0513; was read as white, PIL's convert
+    clipping it at 255); a texture image or material library the OBJ names but lacks is an error naming it (was the
+    flat Kd colour, without a word)."""
+    from PIL import Image
+
+    from photoreg.io.images import srgb_to_linear
+    from photoreg.render.scene import load_object
+
+    box = trimesh.creation.box(extents=(1, 1, 1))
+    box.visual = trimesh.visual.TextureVisuals(uv=box.vertices[:, :2] + 0.5,
+                                               image=Image.fromarray(np.full((4, 4, 3), 200, np.uint8)))
+    box.export(tmp_path / "box.obj")
+    (image,) = tmp_path.glob("*.png")
+    cv2.imwrite(str(image), np.full((4, 4), 0x4000, np.uint16))
+    obj = ObjectConfig(mesh=str(tmp_path / "box.obj"), albedo="texture")
+    np.testing.assert_allclose(load_object(obj).textures[0], srgb_to_linear(np.full((4, 4, 3), 64, np.uint8)))
+    image.unlink()
+    with pytest.raises(FileNotFoundError, match=re.escape(f"the texture image {image} (map_Kd) is missing")):
+        load_object(obj)
+    for mtl in tmp_path.glob("*.mtl"):
+        mtl.unlink()
+    with pytest.raises(FileNotFoundError, match="its material library .* is missing"):
+        load_object(obj)
+    load_object(ObjectConfig(mesh=str(tmp_path / "box.obj")))   # one albedo: no texture needed
 
 
 def test_none_renderer_leaves_real_pixels(tmp_path):

@@ -166,6 +166,8 @@ def load_object(obj: ObjectConfig) -> VirtualObject:
         albedo = np.asarray(obj.albedo, dtype=np.float64)
         if albedo.shape != (3,) or not np.all(np.isfinite(albedo)) or np.any(albedo < 0):
             raise ValueError(f"{path}: object albedo must be 3 finite non-negative numbers, got {obj.albedo}")
+    if textured and path.suffix.lower() == ".obj":
+        check_obj_textures(path)
     try:   # the parts apart: each keeps its own material (mesh_parts)
         parts = mesh_parts(trimesh.load(str(path), process=True))
     except Exception as e:  # trimesh raises many types for unreadable files
@@ -260,8 +262,31 @@ def base_colour_texture(mesh, path: Path) -> tuple[np.ndarray, np.ndarray]:
     uv = getattr(mesh.visual, "uv", None)
     if uv is None or len(uv) != len(mesh.vertices) or not np.all(np.isfinite(uv)):
         raise ValueError(f"{path}: albedo = {ALBEDO_TEXTURE!r} but the mesh has no (finite) texture coordinates")
-    texture = srgb_to_linear(np.ascontiguousarray(np.asarray(image.convert("RGB"), np.uint8)))
+    texture = srgb_to_linear(np.ascontiguousarray(_rgb8(image)))
     return np.asarray(uv, np.float32), np.ascontiguousarray(texture * scale, np.float32)
+
+
+def _rgb8(image) -> np.ndarray:
+    """A PIL image as HxWx3 uint8: 16-bit grey (PIL's modes "I;16*" and "I" for a 16-bit grey PNG) scaled to 8 bits,
+    since convert("RGB") clips its values at 255 (white); every other mode through convert."""
+    if image.mode.startswith("I"):
+        grey = np.clip(np.round(np.asarray(image, np.float64) / 257.0), 0, 255).astype(np.uint8)
+        return np.repeat(grey[..., None], 3, axis=2)
+    return np.asarray(image.convert("RGB"), np.uint8)
+
+
+def check_obj_textures(path: Path) -> None:
+    """FileNotFoundError naming the file where an OBJ's material library or a texture image it names (map_Kd) is
+    missing: trimesh goes on without them (the flat Kd colour, or none), which a textured object must not."""
+    for line in path.read_text(errors="replace").splitlines():
+        if line.startswith("mtllib"):
+            mtl = path.parent / line[len("mtllib"):].strip()
+            if not mtl.is_file():
+                raise FileNotFoundError(f"{path}: its material library {mtl} is missing")
+            for entry in mtl.read_text(errors="replace").splitlines():
+                words = entry.split()
+                if words and words[0] == "map_Kd" and len(words) > 1 and not (mtl.parent / words[-1]).is_file():
+                    raise FileNotFoundError(f"{mtl}: the texture image {mtl.parent / words[-1]} (map_Kd) is missing")
 
 
 def load_scene(objects: list[ObjectConfig]) -> VirtualScene:
