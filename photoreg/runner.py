@@ -224,7 +224,7 @@ def _run_frames(s: Session, rec, indices: list[int], pipe, out: Path, quiet: boo
                 on_frame: Callable[[int, int], None] | None) -> dict:
     """run_session's frames into the output folder `out` it holds: lighting.jsonl, the pictures and composites,
     summary.json."""
-    from .io.recording import ReadAhead
+    from .io.recording import ReadAhead, depth_units_warning
 
     skipped: list[dict] = []
     results: list[FrameDone] = []
@@ -242,6 +242,9 @@ def _run_frames(s: Session, rec, indices: list[int], pipe, out: Path, quiet: boo
                            threads=threads)
         try:
             for frame in reader:
+                if not results and (units := depth_units_warning(frame.depth, rec.intrinsics.depth_scale)):
+                    print(f"photoreg: {frame.source}: {units}", file=sys.stderr)
+                    rec.warnings.append(f"frame {frame.index}: {units}")   # summary.json's recording_warnings
                 r = pipe.process(frame)
                 if not results:   # the folder becomes this run's (its own partial video is being written)
                     clear_earlier(out, {**PICTURE_DIRS, **COMPOSITE_DIRS}, tuple(

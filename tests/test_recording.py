@@ -204,13 +204,32 @@ def test_info_warns_of_depth_in_other_units(tmp_path, capsys):
         path.unlink()
     (tmp_path / "depth.txt").write_text((tmp_path / "depth.txt").read_text().replace(".png", ".tiff"))
     assert main(["info", str(tmp_path)]) == 0
-    assert ("warning:     a median depth of 0.0003 m is no depth camera's: is the depth scale (5000 units per metre; "
-            "float images in metres need 1) right?") in capsys.readouterr().out
+    warning = ("a median depth of 0.0003 m is no depth camera's: is the depth scale (5000 units per metre; float "
+               "images in metres need 1) right?")
+    assert f"warning:     {warning}" in capsys.readouterr().out
+    out = tmp_path / "out"   # a run says so too (it said only that every frame had no usable samples)
+    assert main(["run", str(tmp_path), "--out", str(out), "--frames", "1", "--rays", "8", "--bands", "2",
+                 "--device", "cpu", "--quiet"]) == 0
+    assert f"{tmp_path / 'rgb/000000.png'}: {warning}" in capsys.readouterr().err
+    assert json.loads((out / "summary.json").read_text())["recording_warnings"] == [f"frame 0: {warning}"]
     js = tmp_path / "intrinsics.json"
     js.write_text(js.read_text().replace(f'"depth_scale": {DEPTH_SCALE}', '"depth_scale": 1'))
     assert main(["info", str(tmp_path)]) == 0
     out = capsys.readouterr().out
     assert "median 1.500" in out and "warning" not in out
+    js.write_text(js.read_text().replace('"depth_scale": 1', '"depth_scale": 0.001'))   # metres per unit
+    with pytest.raises(ValueError, match="depth_scale = 0.001 is no depth image's: it counts the depth image's "
+                                         "units per metre"):
+        open_recording(tmp_path)
+
+
+def test_a_principal_point_outside_the_image_is_warned_of(tmp_path):
+    """A calibration of a larger image given the size of this one (cy past the image's last row) is warned of."""
+    write_native(tmp_path)
+    assert not open_recording(tmp_path).warnings
+    _replace(tmp_path / "intrinsics.json", '"cy": 2.5', '"cy": 7.5')
+    assert open_recording(tmp_path).warnings == [f"the principal point (3.5, 7.5) lies outside the {W}x{H} image: a "
+                                                 "calibration of another image size?"]
 
 
 def test_intrinsics_json_gives_the_distortion(tmp_path):

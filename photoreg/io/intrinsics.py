@@ -30,6 +30,9 @@ def checked_shutter(value, where: str) -> float:
     return float(value)
 
 
+DEPTH_SCALE_RANGE = (0.01, 1e7)   # depth-image units per metre a depth image may have (0.001: metres per unit)
+
+
 def checked_intrinsics(values: dict, where: str) -> Intrinsics:
     """Intrinsics from a dict of numbers, refusing sizes, focal lengths or scales that cannot be right."""
     w, h = values["width"], values["height"]
@@ -38,6 +41,10 @@ def checked_intrinsics(values: dict, where: str) -> Intrinsics:
     for key in ("fx", "fy", "depth_scale"):
         if not (math.isfinite(values[key]) and values[key] > 0):
             raise ValueError(f"{where}: {key} must be a positive number, found {values[key]}")
+    if not DEPTH_SCALE_RANGE[0] <= values["depth_scale"] <= DEPTH_SCALE_RANGE[1]:
+        raise ValueError(f"{where}: depth_scale = {values['depth_scale']:g} is no depth image's: it counts the "
+                         "depth image's units per metre (1: metres, 1000: millimetres, 5000: TUM), between "
+                         f"{DEPTH_SCALE_RANGE[0]:g} and {DEPTH_SCALE_RANGE[1]:g}")
     for key in ("cx", "cy"):
         if not math.isfinite(values[key]):
             raise ValueError(f"{where}: {key} must be a finite number, found {values[key]}")

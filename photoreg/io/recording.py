@@ -55,6 +55,10 @@ class Recording:
             raise ValueError(f"{self.path}: no distortion coefficients known for this {self.format} recording; "
                              "open it without undistort or give them ('dist k1 k2 p1 p2 k3' in intrinsics.txt, "
                              '"dist": [k1, k2, p1, p2, k3] in intrinsics.json)')
+        k = self.intrinsics
+        if not (0 <= k.cx <= k.width and 0 <= k.cy <= k.height):
+            self.warnings.append(f"the principal point ({k.cx:g}, {k.cy:g}) lies outside the {k.width}x{k.height} "
+                                 "image: a calibration of another image size?")
 
     def __len__(self) -> int:
         return len(self.color_files)
@@ -224,7 +228,20 @@ class ReadAhead(Ahead[int, Frame]):
             yield frame
 
 
-PLAUSIBLE_DEPTH_M = (0.1, 20.0)   # median depths `photoreg info` takes for a depth camera's (else: wrong units?)
+PLAUSIBLE_DEPTH_M = (0.1, 20.0)   # median depths taken for a depth camera's (else: wrong units?)
+
+
+def depth_units_warning(depth: np.ndarray, depth_scale: float) -> str | None:
+    """A warning where the median of the valid depth (metres) is no depth camera's (PLAUSIBLE_DEPTH_M): the depth
+    scale wrong, as a rule; None where it is, or where there is no valid depth."""
+    valid = depth[np.isfinite(depth) & (depth > 0)]
+    if not valid.size:
+        return None
+    median = float(np.median(valid))
+    if PLAUSIBLE_DEPTH_M[0] <= median <= PLAUSIBLE_DEPTH_M[1]:
+        return None
+    return (f"a median depth of {median:.4g} m is no depth camera's: is the depth scale ({depth_scale:g} units per "
+            "metre; float images in metres need 1) right?")
 
 
 def depth_summary(recording: Recording, samples: int = 5) -> tuple[np.ndarray | None, float, list[tuple[int, str]]]:
@@ -269,12 +286,10 @@ def info_command(args: argparse.Namespace) -> int:
         print(f"time span:   {span:.3f} s ({rec.timestamps[0]:.6f} .. {rec.timestamps[-1]:.6f}){rate}")
         valid, fraction, errors = depth_summary(rec)
         if valid is not None and valid.size:
-            median = float(np.median(valid))
-            print(f"depth:       min {valid.min():.3f} / median {median:.3f} / max {valid.max():.3f} m, "
-                  f"{100 * fraction:.1f}% valid (sampled frames)")
-            if not PLAUSIBLE_DEPTH_M[0] <= median <= PLAUSIBLE_DEPTH_M[1]:
-                print(f"warning:     a median depth of {median:.4g} m is no depth camera's: is the depth scale "
-                      f"({rec.intrinsics.depth_scale:g} units per metre; float images in metres need 1) right?")
+            print(f"depth:       min {valid.min():.3f} / median {float(np.median(valid)):.3f} / max "
+                  f"{valid.max():.3f} m, {100 * fraction:.1f}% valid (sampled frames)")
+            if units := depth_units_warning(valid, k.depth_scale):
+                print(f"warning:     {units}")
         elif valid is not None:
             print("depth:       no valid depth in the sampled frames")
         for i, msg in errors:
