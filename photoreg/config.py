@@ -339,6 +339,8 @@ def resolve_path(p: str, base: Path, what: str) -> Path:
 
 MAX_POSE_TIME_OFFSET = 1.0   # seconds: recording.pose_time_offset (a clock's offset, not a recording's start)
 MAX_STRIDE = 64   # lighting.stride, render.stride: a sample's box grows with the stride (stride | 1 pixels square)
+MAX_RAYS = 4096   # lighting.rays: the paper's 169 and the sweep's 300 well inside; 1e8 asked for 37 GB at once
+MAX_BLOCK_COUNT = 1 << 20   # reconstruction.block_count: the hash map's initial blocks, 32 KB each
 
 
 def check_pose_time_offset(seconds: float, what: str) -> None:
@@ -373,7 +375,7 @@ def validate(s: Session) -> None:
     fitted = L.bands if L.select == "fixed" else L.max_bands   # the most bands a solve may fit
     check_pose_time_offset(s.recording.pose_time_offset, f"{where}: recording.pose_time_offset")
     checks = [(1 <= L.bands <= 8, "lighting.bands must be in 1..8"),
-              (L.rays >= 1, "lighting.rays must be >= 1"),
+              (1 <= L.rays <= MAX_RAYS, f"lighting.rays must be in 1..{MAX_RAYS}"),
               (2 * L.rays >= fitted ** 2,   # every transfer vector is a sum over the 2 x rays directions of one set
                f"lighting.rays must be >= {-(-fitted ** 2 // 2)} for {fitted} bands ({fitted ** 2} coefficients; the "
                f"transfer vectors span at most 2 x rays directions): more rays or fewer bands"),
@@ -411,7 +413,8 @@ def validate(s: Session) -> None:
               (not s.output.video or bool(s.objects), "output.video needs [[objects]]: the video shows the composites"),
               (R.voxel_size > 0, "reconstruction.voxel_size must be > 0"),
               (R.trunc_voxels > 0, "reconstruction.trunc_voxels must be > 0"),
-              (R.block_count >= 1, "reconstruction.block_count must be >= 1"),
+              (1 <= R.block_count <= MAX_BLOCK_COUNT, f"reconstruction.block_count must be in 1..{MAX_BLOCK_COUNT} "
+                                                      "(16^3-voxel blocks of 32 KB: 32 GB at most)"),
               (s.output.pictures_every >= 0, "output.pictures_every must be >= 0"),
               (0 < R.depth_min < R.depth_max, "reconstruction.depth_min must be > 0 and < depth_max"),
               (R.depth_filter_px == 0 or (R.depth_filter_px % 2 == 1 and 3 <= R.depth_filter_px <= 15),

@@ -343,6 +343,22 @@ def test_ctrl_c_ends_a_command_without_a_traceback(tmp_path, monkeypatch, capsys
     assert "photoreg run: interrupted" in err and "Traceback" not in err
 
 
+def test_out_of_memory_ends_a_command_with_one_line(tmp_path, monkeypatch, capsys):
+    """An allocation that fails (here numpy's, as the frames ask it) ends the command with status 2 and a line that
+    points at the settings, not a traceback."""
+    from photoreg.cli import main
+    from photoreg.pipeline import Pipeline
+
+    def too_large(self, frame):
+        return np.zeros(1 << 62, np.uint8)   # 4 EiB: numpy raises MemoryError
+
+    monkeypatch.setattr(Pipeline, "process", too_large)
+    assert main(["run", str(REPO / "data" / "demo"), "--frames", "0:1", "--rays", "16", "--quiet", "--out",
+                 str(tmp_path)]) == 2
+    err = capsys.readouterr().err
+    assert "photoreg run: error: out of memory (Unable to allocate" in err and "Traceback" not in err
+
+
 def test_read_exr_takes_a_luminance_image_as_grey_and_names_other_channels(tmp_path):
     """An environment map or composite saved as Y alone reads as grey; other channels are named (before: KeyError)."""
     import OpenEXR

@@ -279,7 +279,9 @@ def test_order_selection_says_it_turns_the_light_and_the_bounce_off(capsys):
     ("lighting", "rays", 8, "lighting.rays must be >= 13 for 5 bands (25 coefficients; the transfer vectors span at "
                             "most 2 x rays directions)"),   # each frame was rank deficient, flagged weak
     ("reconstruction", "trunc_voxels", 0.0, "reconstruction.trunc_voxels must be > 0"),
-    ("reconstruction", "block_count", -5, "reconstruction.block_count must be >= 1"),
+    ("reconstruction", "block_count", -5, "reconstruction.block_count must be in 1..1048576"),
+    ("reconstruction", "block_count", 2 ** 63 - 1, "reconstruction.block_count must be in 1..1048576"),   # malloc
+    ("lighting", "rays", 100_000_000, "lighting.rays must be in 1..4096"),   # 37 GB at once: a MemoryError
     ("output", "pictures_every", -1, "output.pictures_every must be >= 0"),
     (None, "frames", "0:4:0", "frames (--frames): expected N, A:B or A:B:S with numbers >= 0 and S >= 1"),
 ])
