@@ -246,13 +246,13 @@ def _fill(cls, data: dict, where: str, section: str):
     known = {f.name for f in dataclasses.fields(cls)}
     kwargs = {}
     for key, value in data.items():
+        name = f"{section}.{key}" if section else key
         if key not in known:
-            raise ValueError(f"{where}: unknown key '{section + '.' if section else ''}{key}' "
-                             f"(known: {', '.join(sorted(known))})")
-        v = _check_value(where, f"{section}.{key}" if section else key, value, hints[key])
+            raise ValueError(f"{where}: unknown key '{name}' (known: {', '.join(sorted(known))})")
+        v = _check_value(where, name, value, hints[key])
         choices = _CHOICES.get((section, key))
         if choices and v not in choices:
-            raise ValueError(f"{where}: key '{section}.{key}' must be one of {sorted(choices)}, got {v!r}")
+            raise ValueError(f"{where}: key '{name}' must be one of {sorted(choices)}, got {v!r}")
         kwargs[key] = v
     return cls(**kwargs)
 
@@ -325,15 +325,17 @@ def load_session(path: str | Path, files: bool = True) -> Session:
 
 
 def resolve_path(p: str, base: Path, what: str) -> Path:
-    """Expand ~ and $PHOTOREG_DATA-style variables; relative paths are taken from `base`. A variable that is not set
-    is an error naming it (`what`: the file and key, for the message)."""
+    """Expand ~ and $PHOTOREG_DATA-style variables ($$ for a $ of the name itself); relative paths are taken from
+    `base`. A variable that is not set is an error naming it (`what`: the file and key, for the message)."""
     import os
     import re
 
-    unset = [m[0] or m[1] for m in re.findall(r"\$\{(\w+)\}|\$(\w+)", p) if (m[0] or m[1]) not in os.environ]
+    pieces = p.split("$$")
+    unset = [m[0] or m[1] for piece in pieces for m in re.findall(r"\$\{(\w+)\}|\$(\w+)", piece)
+             if (m[0] or m[1]) not in os.environ]
     if unset:
         raise ValueError(f"{what} {p!r}: environment variable {', '.join(unset)} is not set")
-    q = Path(os.path.expandvars(os.path.expanduser(p)))
+    q = Path(os.path.expanduser("$".join(os.path.expandvars(piece) for piece in pieces)))
     return q if q.is_absolute() else (base / q).resolve()
 
 

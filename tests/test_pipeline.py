@@ -5,6 +5,7 @@ import dataclasses
 import json
 import multiprocessing
 import re
+import shutil
 from pathlib import Path
 
 import cv2
@@ -78,6 +79,13 @@ def test_session_overrides_and_bad_options(tmp_path, capsys):
     bad.write_text(demo.replace(f'path = "{where}"', 'path = "${PHOTOREG_NO_SUCH_VARIABLE}/demo"'))
     with pytest.raises(ValueError, match=re.escape(f"{bad}: recording.path '${{PHOTOREG_NO_SUCH_VARIABLE}}/demo': "
                                                    "environment variable PHOTOREG_NO_SUCH_VARIABLE is not set")):
+        load_session(bad)
+    priced = tmp_path / "price$5"   # $$: a $ of the name itself (was 'environment variable 5 is not set')
+    shutil.copytree(where, priced)
+    bad.write_text(demo.replace(f'path = "{where}"', f'path = "{str(priced).replace("$", "$$")}"'))
+    assert load_session(bad).recording.path == str(priced)
+    bad.write_text('device = "gpu"\n' + demo)
+    with pytest.raises(ValueError, match=f"{re.escape(str(bad))}: key 'device' must be one of"):   # not '.device'
         load_session(bad)
     if not init_warp().is_cuda_available():   # a session's device names the session, not the CLI flag alone
         bad.write_text('device = "cuda"\n' + demo)
