@@ -11,6 +11,7 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 from scenes import write_recording
 from servecli import free_port
@@ -446,3 +447,28 @@ def test_photoreg_sets_one_blas_thread_before_numpy_loads():
     out = subprocess.run([sys.executable, "-c", code], env={**env, "OPENBLAS_NUM_THREADS": "3"},
                          capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "3"
+
+
+def test_the_digest_follows_an_obj_s_material_and_texture(tmp_path):
+    """--resume's session digest changes with an OBJ's texture image or material library (before: the .obj's bytes
+    alone, so an edited texture left its session complete)."""
+    import trimesh
+    from PIL import Image
+
+    from photoreg.batch.runner import session_digest
+    from photoreg.config import ObjectConfig, Session
+
+    box = trimesh.creation.box(extents=(1, 1, 1))
+    box.visual = trimesh.visual.TextureVisuals(uv=box.vertices[:, :2] + 0.5,
+                                               image=Image.fromarray(np.full((4, 4, 3), 200, np.uint8)))
+    box.export(tmp_path / "box.obj")
+    s = Session(objects=[ObjectConfig(mesh=str(tmp_path / "box.obj"), albedo="texture")])
+    before = session_digest(s)
+    assert session_digest(s) == before
+    (image,) = tmp_path.glob("*.png")
+    Image.fromarray(np.full((4, 4, 3), 100, np.uint8)).save(image)
+    assert session_digest(s) != before
+    edited = session_digest(s)
+    (mtl,) = tmp_path.glob("*.mtl")
+    mtl.write_text(mtl.read_text() + "\n# an edit\n")
+    assert session_digest(s) != edited

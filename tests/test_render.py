@@ -840,7 +840,7 @@ def test_an_obj_s_texture_16_bit_grey_or_missing(tmp_path):
     obj = ObjectConfig(mesh=str(tmp_path / "box.obj"), albedo="texture")
     np.testing.assert_allclose(load_object(obj).textures[0], srgb_to_linear(np.full((4, 4, 3), 64, np.uint8)))
     image.unlink()
-    with pytest.raises(FileNotFoundError, match=re.escape(f"the texture image {image} (map_Kd) is missing")):
+    with pytest.raises(FileNotFoundError, match=re.escape(f"its texture image (map_Kd) {image} is missing")):
         load_object(obj)
     for mtl in tmp_path.glob("*.mtl"):
         mtl.unlink()

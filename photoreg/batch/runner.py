@@ -74,11 +74,18 @@ def plan(paths: list[str], device: str | None = None) -> list[SessionTask]:
 
 def session_digest(s: Session) -> str:
     """sha256 of what a session's outputs follow from: its settings as resolved (paths with their variables expanded,
-    the device) and its meshes' bytes. A session file whose ${PHOTOREG_DATA} now points elsewhere, or whose mesh was
-    edited, is not complete any more (--resume runs it)."""
+    the device) and its meshes' bytes, an OBJ's material libraries and textures with them. A session file whose
+    ${PHOTOREG_DATA} now points elsewhere, or whose mesh or texture was edited, is not complete any more (--resume
+    runs it)."""
+    from ..render.scene import obj_material_files
+
     h = hashlib.sha256(json.dumps(dataclasses.asdict(s), sort_keys=True, default=str).encode())
     for obj in s.objects:
-        h.update(Path(obj.mesh).read_bytes())
+        mesh = Path(obj.mesh)
+        h.update(mesh.read_bytes())
+        if mesh.suffix.lower() == ".obj":
+            for file, _ in obj_material_files(mesh):
+                h.update(file.read_bytes() if file.is_file() else b"missing")
     return h.hexdigest()
 
 

@@ -166,8 +166,10 @@ def load_object(obj: ObjectConfig) -> VirtualObject:
         albedo = np.asarray(obj.albedo, dtype=np.float64)
         if albedo.shape != (3,) or not np.all(np.isfinite(albedo)) or np.any(albedo < 0):
             raise ValueError(f"{path}: object albedo must be 3 finite non-negative numbers, got {obj.albedo}")
-    if textured and path.suffix.lower() == ".obj":
-        check_obj_textures(path)
+    if textured and path.suffix.lower() == ".obj":   # trimesh goes on without them: the flat Kd colour, or none
+        for file, what in obj_material_files(path):
+            if not file.is_file():
+                raise FileNotFoundError(f"{path}: its {what} {file} is missing")
     try:   # the parts apart: each keeps its own material (mesh_parts)
         parts = mesh_parts(trimesh.load(str(path), process=True))
     except Exception as e:  # trimesh raises many types for unreadable files
@@ -275,18 +277,19 @@ def _rgb8(image) -> np.ndarray:
     return np.asarray(image.convert("RGB"), np.uint8)
 
 
-def check_obj_textures(path: Path) -> None:
-    """FileNotFoundError naming the file where an OBJ's material library or a texture image it names (map_Kd) is
-    missing: trimesh goes on without them (the flat Kd colour, or none), which a textured object must not."""
+def obj_material_files(path: Path) -> list[tuple[Path, str]]:
+    """The files an OBJ's look depends on besides itself, each with what it is: its material libraries (mtllib) and
+    the texture images they name (map_Kd; the libraries that exist read for them)."""
+    files = []
     for line in path.read_text(errors="replace").splitlines():
         if line.startswith("mtllib"):
             mtl = path.parent / line[len("mtllib"):].strip()
-            if not mtl.is_file():
-                raise FileNotFoundError(f"{path}: its material library {mtl} is missing")
-            for entry in mtl.read_text(errors="replace").splitlines():
-                words = entry.split()
-                if words and words[0] == "map_Kd" and len(words) > 1 and not (mtl.parent / words[-1]).is_file():
-                    raise FileNotFoundError(f"{mtl}: the texture image {mtl.parent / words[-1]} (map_Kd) is missing")
+            files.append((mtl, "material library"))
+            if mtl.is_file():
+                files += [(mtl.parent / words[-1], "texture image (map_Kd)")
+                          for words in map(str.split, mtl.read_text(errors="replace").splitlines())
+                          if len(words) > 1 and words[0] == "map_Kd"]
+    return files
 
 
 def load_scene(objects: list[ObjectConfig]) -> VirtualScene:
