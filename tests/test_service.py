@@ -275,7 +275,7 @@ BAD_HELLOS = [
     ({"intrinsics": {**K.to_json(), "width": 100000, "height": 100000}}, "too_large"),
     ({"intrinsics": {**K.to_json(), "fx": float("nan")}}, "bad_field"),
     ({"intrinsics": {**K.to_json(), "width": 80.5}}, "bad_field"),
-    ({"options": {"lighting": {"rays": 100000}}}, "too_large"),
+    ({"options": {"lighting": {"rays": 2000}}}, "too_large"),
     ({"options": {"lighting": {"bands": 0}}}, "bad_field"),
     ({"options": {"lighting": {"colour": 1}}}, "bad_field"),
     ({"options": {"reconstruction": {"block_count": 10**9}}}, "bad_field"),
