@@ -497,7 +497,8 @@ class Pipeline:
             self._frames += 1
             if self._in_flight is not None and self._in_flight[2].done():
                 self._collect(t)
-            due = self._held is None or self._held_for + 1 >= lc.every
+            # an estimate from no samples (a black frame, say) is not held over the good frames after it
+            due = self._held is None or self._held_for + 1 >= lc.every or self._held[2].n_samples == 0
             beside = self._worker is not None and self._held is not None   # estimates run in the worker
             hold = not due or beside
             start = beside and due and self._in_flight is None

@@ -12,7 +12,7 @@ from typing import Callable
 import numpy as np
 
 from .config import Session, load_session, select_frames, validate
-from .io.atomic import check_output_dir, hold_folder, write_json
+from .io.atomic import check_output_dir, finite_json, hold_folder, write_json
 from .io.images import linear_to_srgb, write_exr, write_png_rgb
 from .io.poses import write_tum_trajectory
 from .io.video import VideoOut, frame_rate
@@ -126,11 +126,12 @@ class Progress:
 
 
 def result_record(r: FrameResult) -> dict:
-    """One lighting.jsonl object (DESIGN.md 'Files')."""
-    return {"frame": r.index, "timestamp": r.timestamp, "bands": r.lighting.bands,
-            "sh": np.round(r.lighting.sh, 7).tolist(), "dominant_direction": np.round(r.dominant_direction, 6).tolist(),
-            "diagnostics": r.diagnostics.to_json(), "timings_ms": {k: round(v, 3) for k, v in r.timings_ms.items()},
-            "pose": None if r.pose is None else np.round(r.pose, 7).tolist()}
+    """One lighting.jsonl object (DESIGN.md 'Files'), strict JSON: a non-finite number would be null."""
+    return finite_json({
+        "frame": r.index, "timestamp": r.timestamp, "bands": r.lighting.bands,
+        "sh": np.round(r.lighting.sh, 7).tolist(), "dominant_direction": np.round(r.dominant_direction, 6).tolist(),
+        "diagnostics": r.diagnostics.to_json(), "timings_ms": {k: round(v, 3) for k, v in r.timings_ms.items()},
+        "pose": None if r.pose is None else np.round(r.pose, 7).tolist()})
 
 
 def write_pictures(out: Path, r: FrameResult) -> None:
@@ -252,7 +253,7 @@ def _run_frames(s: Session, rec, indices: list[int], pipe, out: Path, quiet: boo
                 results.append(FrameDone(r.index, r.timestamp, r.diagnostics.weak, r.composite is not None,
                                          bool(r.objects_in_view), r.pose if pipe.tracker is not None else None))
                 stage_ms.add(r.timings_ms)
-                f.write(json.dumps(result_record(r)) + "\n")
+                f.write(json.dumps(result_record(r), allow_nan=False) + "\n")
                 f.flush()
                 k = s.output.pictures_every
                 if k and (len(results) - 1) % k == 0:

@@ -171,9 +171,31 @@ def test_lighting_every_holds_the_estimate_between_estimates(tmp_path, monkeypat
     assert not np.array_equal(results[3].lighting.sh, results[0].lighting.sh)
     gains = [r.diagnostics.exposure_gain for r in results]
     assert abs(gains[4] - 0.5) < 0.1 and all(abs(g - 1) < 0.1 for i, g in enumerate(gains) if i != 4), gains
+    # a first frame black: its estimate had no samples, so the next frame estimates again (was held, zero lighting,
+    # over the good frames until the next due one)
+    pipe = pipeline_module.Pipeline(s, rec.intrinsics)
+    black = pipe.process(dataclasses.replace(rec.frame(0), color=np.zeros_like(rec.frame(0).color)))
+    after = pipe.process(rec.frame(1))
+    assert black.diagnostics.n_samples == 0 and black.diagnostics.weak
+    assert "solve" in after.timings_ms and after.diagnostics.n_samples > 0 and np.abs(after.lighting.sh).sum() > 0
     s.lighting.every = 0
     with pytest.raises(ValueError, match="lighting.every"):
         validate(s)
+
+
+def test_a_lighting_record_is_strict_json(tmp_path):
+    """lighting.jsonl's record (runner.result_record, a stream's lighting reply too) holds no NaN or Infinity token:
+    a non-finite number becomes null (json.dumps wrote NaN, which strict readers refuse)."""
+    from photoreg.runner import result_record
+
+    k = Intrinsics(64, 48, 56.0, 56.0, 31.5, 23.5, 5000.0)
+    rec = open_recording(write_recording(tmp_path / "rec", k, 1, with_gt=False))
+    s = Session(device="cpu")
+    s.lighting.rays, s.lighting.stride, s.lighting.bands = 16, 4, 2
+    r = pipeline_module.Pipeline(s, rec.intrinsics).process(rec.frame(0))
+    r.timings_ms["solve"], r.diagnostics.residual_rms = float("nan"), float("inf")
+    record = json.loads(json.dumps(result_record(r), allow_nan=False))
+    assert record["timings_ms"]["solve"] is None and record["diagnostics"]["residual_rms"] is None
 
 
 def test_held_frames_ray_cast_coarser_only_where_the_gain_keeps_its_samples():
