@@ -380,6 +380,8 @@ class Pipeline:
                 diag.notes.append("too few usable samples to start the temporal filter on: this frame's own estimate")
             elif self.filter is not None:
                 filtered, diag.change_detected = self.filter.update(sol, new_view)
+                if diag.change_detected and self.sun is not None:
+                    self.sun.lighting_changed()
                 # the filter weighs the channels apart: a white-mode light is one colour again
                 F = Lighting(sh.one_chroma(filtered) if lc.mode == "white" else filtered)
                 e = None if keep_light else self.filter.irradiance(None if sun is None else sol.terms["sun"],

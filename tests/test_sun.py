@@ -43,7 +43,7 @@ def scattered(n):
     return np.random.default_rng(99).normal(size=(n, 3))
 
 
-def model_samples(rng, n=2500, sun_strength=3.0, albedos=((0.8, 0.8, 0.8), (0.6, 0.3, 0.2))):
+def model_samples(rng, n=2500, sun_strength=3.0, albedos=((0.8, 0.8, 0.8), (0.6, 0.3, 0.2)), sun=SUN):
     """Radiance under a 3-band sky plus a disc sun traced exactly, with its transfer, normals, sky SH and
     the occluders (the solve sees 5 bands)."""
     normals, axis, cos_r = occluders(rng, n)
@@ -52,7 +52,7 @@ def model_samples(rng, n=2500, sun_strength=3.0, albedos=((0.8, 0.8, 0.8), (0.6,
     sky = np.zeros((3, 25))
     sky[:, :9] = sh.project(QUAD, np.clip(QUAD[:, 2:3], 0, None) * [0.3, 0.4, 0.6] + 0.1,
                             np.full(len(QUAD), 4 * math.pi / len(QUAD)), 3)
-    disc = np.vstack([SUN, *np.eye(3)[:0]])
+    disc = sun[None]
     t_sun = direct_transfer(visible(normals, axis, cos_r, disc), normals, disc)[:, 0]
     region = (rng.random(n) < 0.5).astype(int)
     rho = np.asarray(albedos)[region]
@@ -159,6 +159,33 @@ def test_a_held_light_is_refined_every_refine_every_frames_and_held_between():
     assert all(0 < t < traced[0] for t in traced[6:10]) and all(f is not None for f in found)   # refined alone
     with pytest.raises(ValueError, match="refine_every"):
         SunConfig(refine_every=0)
+
+
+def test_a_light_that_moved_is_found_in_the_frame_after_the_change():
+    """After lighting_changed (the temporal filter's change test) the next frame runs a coarse pass in which the
+    moved light outvotes the old one's accumulated votes: found there, where without it the held light was refined
+    round the old direction for frames; a light that stayed keeps its direction."""
+    moved = unit([-0.6, 0.35, 0.7])
+    cfg = SolverConfig(bands=5, **ROBUST)
+
+    def frame(sun):
+        radiance, transfer, normals, _, _, _, (axis, cos_r) = model_samples(np.random.default_rng(1), sun=sun)
+        sol = solve(radiance, transfer, normals, np.ones(len(normals)), cfg)
+        return (lambda idx, dirs: visible(normals[idx], axis[idx], cos_r[idx], dirs)), sol, radiance, \
+            (lambda idx: transfer[idx]), normals, scattered(len(normals))
+
+    before, after = frame(SUN), frame(moved)
+
+    def run(changed: bool, inputs) -> list[float]:
+        search = SunSearch(SunConfig())
+        for _ in range(20):   # four coarse passes of the first light
+            search(*before)
+        if changed:
+            search.lighting_changed()
+        return [math.degrees(math.acos(min(1.0, search(*inputs).direction @ want))) for want in (moved, SUN)]
+
+    assert run(False, after)[0] > 30 and run(True, after)[0] < 3
+    assert run(True, before)[1] < 2
 
 
 def test_a_stale_joint_fit_has_the_held_light_refined_in_that_frame():

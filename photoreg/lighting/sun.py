@@ -58,6 +58,7 @@ from .parametric import ANGLE_DEFAULT, cone_directions, lobe_sh
 from .robust import Solution, Term
 
 REFINE_DIRS = 24     # directions per refinement cone
+CHANGE_KEEP = 0.25   # share of a pass the accumulated votes keep where the lighting changed (lighting_changed)
 PATCH_SHARE = 0.25   # search: a region with fewer samples on the floor's plane than this share of the floor region's
                      # own is scored there with the floor's albedo (module docstring, step 2)
 REFINE_LEVELS = (1.0, 1.0 / 3.0)  # cone radii in units of the coarse spacing
@@ -145,6 +146,7 @@ class SunSearch:
         self.last: Sun | None = None           # the latest refined light, held between refinements
         self.residuals: deque = deque(maxlen=STALE_FRAMES)  # residual rms of the latest joint fits
         self.forced = False                    # the frame is searched again (recheck)
+        self.coarse_next = False               # the next search is a coarse pass (lighting_changed)
         self.frames = 0
 
     def due(self) -> bool:
@@ -155,7 +157,7 @@ class SunSearch:
         # few views (generated coloured orbit: frame 0's 10.6 degrees off, frames 1-4's 6.3-3.3)
         young = self.held_since is not None and self.frames - self.held_since < cfg.coarse_every
         refine = self.held is not None and (young or self.frames % cfg.refine_every == 0)
-        return self.forced or refine or self.frames % cfg.coarse_every == 0
+        return self.forced or refine or self.coarse_next or self.frames % cfg.coarse_every == 0
 
     def stale(self, residual_rms: float) -> bool:
         """Record the residual rms of a joint fit with the light; whether it is over STALE_FACTOR times the median
@@ -163,6 +165,16 @@ class SunSearch:
         worse = len(self.residuals) >= 3 and residual_rms > STALE_FACTOR * float(np.median(self.residuals))
         self.residuals.append(residual_rms)
         return worse
+
+    def lighting_changed(self) -> None:
+        """The temporal filter saw the lighting change (a light switched or moved): the accumulated votes count as
+        CHANGE_KEEP of a pass and the next frame runs a coarse pass, so a light that moved is found there; the
+        refinements search only round the held direction, and the old votes outweighed the new ones for up to
+        `memory` coarse passes (a static camera's sun moved 120 degrees: 25 frames). A light that stayed keeps its
+        mean vote (numerator and weight scale alike)."""
+        self.votes *= CHANGE_KEEP
+        self.weight *= CHANGE_KEEP
+        self.coarse_next = True
 
     def recheck(self) -> None:
         """Search the frame just searched again, as a refinement of the held light (its joint fit was stale)."""
@@ -183,9 +195,9 @@ class SunSearch:
         if sol is None or sol.samples is None or sol.system is None or int((sol.weights > 0).sum()) < 10:
             # too little to search in (a black or covered frame): the held light as last refined, searched next frame
             return self.last if self.held is not None else None
-        coarse = self.frames % cfg.coarse_every == 0
+        coarse = self.coarse_next or self.frames % cfg.coarse_every == 0
         self.frames += 1
-        self.forced = False
+        self.forced = self.coarse_next = False
         A, I, w, rho, nrm, idx = _search_inputs(sol, radiance, design, normals, points, cfg)
         lam = cfg.search_regularization
 
