@@ -537,6 +537,8 @@ class Pipeline:
             F, diag = Lighting(prev.copy()), SolveDiagnostics(notes=[note], estimated_frame=self.prev_from[0],
                                                               sun=self.prev_from[1])
         diag.notes = notes + list(diag.notes)
+        if prep.uniform:
+            diag.notes.append("the colour frame is one level everywhere (a camera's glitch?): no samples taken from it")
         if prep.saturated_fraction > 0.2:
             diag.notes.append(f"{prep.saturated_fraction:.0%} of pixels saturated")
         if prep.black_fraction > 0.5:

@@ -11,6 +11,8 @@ from .config import LightingConfig, ReconstructionConfig
 from .io.images import srgb_to_linear
 from .types import Frame
 
+UNIFORM_LEVELS = 1   # a colour frame whose brightest channel spans at most this many 8-bit levels is uniform
+
 
 @dataclass
 class Prepared:
@@ -24,6 +26,7 @@ class Prepared:
     black_fraction: float
     valid_depth_fraction: float
     denoise: str = "none"   # lighting.denoise: how `linear` is made from `colour`
+    uniform: bool = False   # the colour one level everywhere (a camera's glitch): no pixel usable
 
     @cached_property
     def linear(self) -> np.ndarray:
@@ -111,6 +114,10 @@ def prepare(frame: Frame, light: LightingConfig, recon: ReconstructionConfig) ->
     cmax = cv2.max(cv2.max(r, g), b)   # the brightest channel: 0.13 ms at 640x480, 0.34 in numpy
     saturated = cmax >= light.saturation_level
     black = cmax <= light.black_level
+    low, high = cv2.minMaxLoc(cmax)[:2]
+    # no real view shows one level everywhere; a camera's grey or blank frame does, and lit as it is it restarted the
+    # temporal filter and left the traced light's irradiance a third low for ten frames (the demo, frame 3 grey)
+    uniform = high - low <= UNIFORM_LEVELS
     d, valid = masked_depth(frame.depth, recon.depth_min, recon.depth_max)
     if recon.depth_filter_px:
         d = filter_depth(d, valid, recon.depth_filter_px, recon.depth_filter_m)
@@ -119,5 +126,7 @@ def prepare(frame: Frame, light: LightingConfig, recon: ReconstructionConfig) ->
     def share(mask: np.ndarray) -> float:
         return cv2.countNonZero(mask.view(np.uint8)) / n   # 15x faster than mask.sum()
 
-    return Prepared(frame.color, d, valid & ~saturated & ~black, valid & saturated & ~black, share(saturated),
-                    share(black), share(valid), light.denoise)
+    usable, clipped = ((np.zeros_like(valid),) * 2 if uniform else
+                       (valid & ~saturated & ~black, valid & saturated & ~black))
+    return Prepared(frame.color, d, usable, clipped, share(saturated), share(black), share(valid), light.denoise,
+                    uniform)

@@ -474,6 +474,25 @@ def test_a_black_frame_keeps_the_held_light(history):
         assert np.array_equal(results[2].lighting.sh, results[1].lighting.sh)
 
 
+def test_a_uniform_frame_is_weak_and_leaves_the_lighting_after_it_alone():
+    """Frame 3 one grey level everywhere (a camera's glitch, its depth intact): weak, said, no samples taken (an
+    all-255 frame alike: no lower bounds with lighting.censored); the frames after it are lit as without it. Before,
+    it was lit as it was: it restarted the temporal filter, and the traced light's irradiance fell to a third (2.86
+    -> 0.88) and was still a quarter low ten frames later."""
+    grey = (lambda i, f: dataclasses.replace(f, color=np.full_like(f.color, 128)) if i == 3 else f)
+    clean, glitch = _demo_lighting(6), _demo_lighting(6, grey)
+    diag = glitch[3].diagnostics
+    assert diag.weak and any("one level everywhere" in n for n in diag.notes)
+    assert not any(r.diagnostics.change_detected for r in glitch)
+    for a, b in zip(clean[4:], glitch[4:]):
+        assert np.asarray(b.diagnostics.sun["irradiance"]) == pytest.approx(a.diagnostics.sun["irradiance"], rel=0.05)
+        assert np.linalg.norm(b.lighting.sh - a.lighting.sh) < 0.15 * np.linalg.norm(a.lighting.sh), b.index
+    k = Intrinsics(64, 48, 60.0, 60.0, 31.5, 23.5, 1000.0)
+    white = prepare(Frame(0, 0.0, np.full((48, 64, 3), 255, np.uint8), np.ones((48, 64), np.float32), k, np.eye(4)),
+                    Session().lighting, Session().reconstruction)
+    assert white.uniform and not white.usable.any() and not white.clipped.any()
+
+
 def test_a_frame_without_a_pose_repeats_the_previous_estimate_and_its_light():
     """Frame 2 without a pose repeats frame 1's lighting, says it is frame 1's and keeps its traced light (before: no
     estimated_frame and no light, which photoreg score counted as 90 degrees off)."""
