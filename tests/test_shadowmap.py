@@ -159,17 +159,20 @@ def test_real_shadow_is_not_darkened_twice(tmp_path):
     assert layers.ratio[walled].min() > 0.95                      # already in the wall's shadow: left alone
 
 
-def test_virtual_shadow_takes_the_measured_strength(tmp_path):
+@pytest.mark.parametrize("shadow", [(0.5, 0.5, 0.5), (0.3, 0.45, 0.75)], ids=["grey", "sky-tinted"])
+def test_virtual_shadow_takes_the_measured_strength(tmp_path, shadow):
     """Jacobs et al.: where the frame shows real shadows, the virtual shadow is as dark as they are
-    (here half the lit radiance), not as dark as the parametric light says (about 0.9 of it blocked)."""
-    inp = _input(tmp_path, _sun_and_sky(), wall=True, wall_ratio=0.5)
+    (here half the lit radiance, or a shadow the sky tints blue), not as dark as the parametric light says (about
+    0.9 of it blocked). The tinted shadow is a colour group of its own, joined to the floor it falls on (before:
+    the floor kept no shadowed point and the parametric strength stood)."""
+    inp = _input(tmp_path, _sun_and_sky(), wall=True, wall_ratio=shadow)
     layers = get_renderer("shadowmap")(inp)
-    assert any("measured" in n for n in layers.notes)
+    assert any("material 0 shadow strength measured" in n for n in layers.notes)
     core = cv2.erode((_analytic_shadow() & (inp.gbuffer.coverage == 0)).astype(np.uint8),
                      np.ones((5, 5), np.uint8)).astype(bool)
     open_part = core & (np.arange(INTR.height)[:, None] < INTR.cy - 5)
     assert open_part.sum() > 20
-    np.testing.assert_allclose(layers.ratio[open_part].mean(0), 0.5, atol=0.05)
+    np.testing.assert_allclose(layers.ratio[open_part].mean(0), shadow, atol=0.05)
     assert parametric_light(inp.F).opacity.min() > 0.8                # the parametric strength would differ
 
 
