@@ -58,7 +58,7 @@ def hdr_recording(folder: Path, hdr: Path, frames: int, size: str, spp: int) -> 
 
 def cell(r: dict) -> str:
     return (f"{r['direction_deg']:.1f} / {r['irradiance_si_rmse_upper']:.3f} / {r['colour_deg']:.1f} / "
-            f"{r['flicker']:.3f}")
+            f"{la.fmt(r['flicker'], '.3f')}")
 
 
 def main() -> int:

@@ -63,8 +63,8 @@ def cell(r: dict | None) -> str:
     if r is None:
         return "-"
     if r["group"] == "real":
-        return f"{r['flicker']:.3f} / {la.fmt(r['heldout'], '.3f')}"
-    return f"{r['direction_deg']:.1f} / {r['irradiance_si_rmse_upper']:.3f} / {r['flicker']:.3f}"
+        return f"{la.fmt(r['flicker'], '.3f')} / {la.fmt(r['heldout'], '.3f')}"
+    return f"{r['direction_deg']:.1f} / {r['irradiance_si_rmse_upper']:.3f} / {la.fmt(r['flicker'], '.3f')}"
 
 
 def main() -> int:

@@ -74,7 +74,7 @@ def session_from_args(args) -> Session:
             raise FileNotFoundError(f"{src}: no such recording folder or session file")
         s = Session()
         s.recording.path = str(src.resolve())
-        s.output.dir = str(Path("out") / src.resolve().name)
+        s.output.dir = str(Path("out") / Path(os.path.abspath(src)).name)   # `..` named, a link's own name kept
     if args.out:
         s.output.dir = args.out
     if args.frames:
@@ -244,7 +244,7 @@ def _run_frames(s: Session, rec, indices: list[int], pipe, out: Path, quiet: boo
         try:
             for frame in reader:
                 if not results and (units := depth_units_warning(frame.depth, rec.intrinsics.depth_scale)):
-                    print(f"photoreg: {frame.source}: {units}", file=sys.stderr)
+                    print(f"photoreg: {rec.depth_files[frame.index]}: {units}", file=sys.stderr)
                     rec.warnings.append(f"frame {frame.index}: {units}")   # summary.json's recording_warnings
                 r = pipe.process(frame)
                 if not results:   # the folder becomes this run's (its own partial video is being written)

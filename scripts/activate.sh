@@ -1,5 +1,6 @@
 # Source from the repository's root (`. scripts/activate.sh`): puts .venv/ first on PATH where scripts/install.sh
-# installed there (an externally managed system Python); changes nothing where it installed into the Python it ran.
-if [ -f .venv/bin/activate ]; then
+# installed there last (an externally managed system Python: .venv/photoreg-installed); changes nothing where it
+# installed into the Python it ran with.
+if [ -f .venv/photoreg-installed ]; then
   . .venv/bin/activate
 fi

@@ -36,11 +36,15 @@ if [ "${PHOTOREG_CUDA:-}" = 1 ] || { command -v nvidia-smi >/dev/null 2>&1 && nv
 else
   o3d=cpu
 fi
+# .venv/photoreg-installed marks the .venv/ this script installed into last, which scripts/activate.sh activates
 if [ "$managed" = 1 ]; then
   [ -x .venv/bin/python ] || $py -m venv .venv
+  touch .venv/photoreg-installed
   py=.venv/bin/python
   echo "install.sh: $($py -c 'import sys; print(sys.base_prefix)')'s Python is externally managed (PEP 668):" \
        "installing into .venv/ (. scripts/activate.sh puts it on PATH)"
+else
+  rm -f .venv/photoreg-installed
 fi
 $py -m pip install -q --upgrade pip
 $py -m pip install -q -e ".[$o3d,$extras]"

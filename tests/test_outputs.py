@@ -435,3 +435,5 @@ def test_a_bare_recording_s_default_output_is_named_after_its_folder(tmp_path, m
     for given in ("..", "../.", str(tmp_path / "scene")):
         s = session_from_args(build_parser().parse_args(["run", given]))
         assert Path(s.output.dir) == Path("out") / "scene", given
+    (tmp_path / "short").symlink_to(tmp_path / "scene")   # a link keeps its own name
+    assert Path(session_from_args(build_parser().parse_args(["run", "../../short"])).output.dir) == Path("out/short")

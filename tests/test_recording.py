@@ -210,7 +210,7 @@ def test_info_warns_of_depth_in_other_units(tmp_path, capsys):
     out = tmp_path / "out"   # a run says so too (it said only that every frame had no usable samples)
     assert main(["run", str(tmp_path), "--out", str(out), "--frames", "1", "--rays", "8", "--bands", "2",
                  "--device", "cpu", "--quiet"]) == 0
-    assert f"{tmp_path / 'rgb/000000.png'}: {warning}" in capsys.readouterr().err
+    assert f"{tmp_path / 'depth/000000.tiff'}: {warning}" in capsys.readouterr().err
     assert json.loads((out / "summary.json").read_text())["recording_warnings"] == [f"frame 0: {warning}"]
     js = tmp_path / "intrinsics.json"
     js.write_text(js.read_text().replace(f'"depth_scale": {DEPTH_SCALE}', '"depth_scale": 1'))
@@ -706,6 +706,11 @@ def test_the_first_frames_of_a_redwood_sequence_with_its_whole_log(tmp_path, icl
     rec = open_recording(root)
     assert rec.has_poses and all(p is not None for p in rec.poses) and not rec.warnings
     assert "trajectory.log: 7 record(s) of frames past the recording's last unused" in rec.notes
+    one_based = "".join(line if k % 5 else "{0} {0} {1}\n".format(k // 5 + 1, k // 5 + 2)
+                        for k, line in enumerate(whole[:5 * 3]))
+    log.write_text(one_based)   # ids 1, 2, 3: each pose a frame late, warned of
+    rec = open_recording(root)
+    assert rec.poses[0] is None and "are its ids counted from 1?" in rec.warnings[0]
     log.write_text("".join(whole[5 * 5:5 * 10]))   # frames 5-9 only
     rec = open_recording(root)
     assert not rec.has_poses and rec.warnings == ["trajectory.log gives none of the 3 frames a pose: the camera is "

@@ -839,12 +839,23 @@ def test_an_obj_s_texture_16_bit_grey_or_missing(tmp_path):
     cv2.imwrite(str(image), np.full((4, 4), 0x4000, np.uint16))
     obj = ObjectConfig(mesh=str(tmp_path / "box.obj"), albedo="texture")
     np.testing.assert_allclose(load_object(obj).textures[0], srgb_to_linear(np.full((4, 4, 3), 64, np.uint8)))
-    image.unlink()
-    with pytest.raises(FileNotFoundError, match=re.escape(f"its texture image (map_Kd) {image} is missing")):
+    (mtl,) = tmp_path.glob("*.mtl")
+    # the names read as trimesh reads them: the rest of the line (spaces kept), map_kd in any case, from the OBJ's
+    # folder (a library in a folder of its own names its images from the OBJ's)
+    spaced = image.with_name("my texture.png")
+    image.rename(spaced)
+    mtl.write_text(mtl.read_text().replace(f"map_Kd {image.name}", f"map_kd {spaced.name}"))
+    np.testing.assert_allclose(load_object(obj).textures[0], srgb_to_linear(np.full((4, 4, 3), 64, np.uint8)))
+    (tmp_path / "materials").mkdir()
+    mtl.rename(tmp_path / "materials" / mtl.name)
+    (tmp_path / "box.obj").write_text((tmp_path / "box.obj").read_text().replace(
+        f"mtllib {mtl.name}", f"mtllib materials/{mtl.name}"))
+    np.testing.assert_allclose(load_object(obj).textures[0], srgb_to_linear(np.full((4, 4, 3), 64, np.uint8)))
+    spaced.unlink()
+    with pytest.raises(FileNotFoundError, match=re.escape("its texture image (map_Kd) 'my texture.png' is missing")):
         load_object(obj)
-    for mtl in tmp_path.glob("*.mtl"):
-        mtl.unlink()
-    with pytest.raises(FileNotFoundError, match="its material library .* is missing"):
+    (tmp_path / "materials" / mtl.name).unlink()
+    with pytest.raises(FileNotFoundError, match=re.escape(f"its material library 'materials/{mtl.name}' is missing")):
         load_object(obj)
     load_object(ObjectConfig(mesh=str(tmp_path / "box.obj")))   # one albedo: no texture needed
 

@@ -84,8 +84,8 @@ def session_digest(s: Session) -> str:
         mesh = Path(obj.mesh)
         h.update(mesh.read_bytes())
         if mesh.suffix.lower() == ".obj":
-            for file, _ in obj_material_files(mesh):
-                h.update(file.read_bytes() if file.is_file() else b"missing")
+            for name, file, _ in obj_material_files(mesh):
+                h.update(file.read_bytes() if file is not None else b"missing " + name.encode())
     return h.hexdigest()
 
 

@@ -119,6 +119,10 @@ def open_redwood(path: Path, undistort: bool) -> Recording:
             notes.append(f"{logs[0].name}: {past} record(s) of frames past the recording's last unused")
         if not any(p is not None for p in poses):
             warnings.append(f"{logs[0].name} gives none of the {len(colors)} frames a pose: the camera is tracked")
+        elif past and poses[0] is None:   # a log counted from 1 poses each frame as the one after it
+            warnings.append(f"{logs[0].name} has records past the recording's last frame and none for its first: "
+                            "are its ids counted from 1? They are frame numbers, from 0 (each pose would be the "
+                            "next frame's)")
     return Recording(path=path, format="redwood", intrinsics=calib.intrinsics,
                      timestamps=np.asarray(numbers if numbers is not None else range(len(colors)), float) / FPS,
                      color_files=colors, depth_files=depths, poses=poses, distortion=calib.distortion,

@@ -167,9 +167,9 @@ def load_object(obj: ObjectConfig) -> VirtualObject:
         if albedo.shape != (3,) or not np.all(np.isfinite(albedo)) or np.any(albedo < 0):
             raise ValueError(f"{path}: object albedo must be 3 finite non-negative numbers, got {obj.albedo}")
     if textured and path.suffix.lower() == ".obj":   # trimesh goes on without them: the flat Kd colour, or none
-        for file, what in obj_material_files(path):
-            if not file.is_file():
-                raise FileNotFoundError(f"{path}: its {what} {file} is missing")
+        for name, file, what in obj_material_files(path):
+            if file is None:
+                raise FileNotFoundError(f"{path}: its {what} {name!r} is missing (looked for in {path.parent})")
     try:   # the parts apart: each keeps its own material (mesh_parts)
         parts = mesh_parts(trimesh.load(str(path), process=True))
     except Exception as e:  # trimesh raises many types for unreadable files
@@ -247,7 +247,7 @@ def base_colour_texture(mesh, path: Path) -> tuple[np.ndarray, np.ndarray]:
     images alone), or that factor alone (a 1 x 1 texture) where a glTF material has no image (an OBJ's: its Kd).
     ValueError naming the file when there is neither, or an image without texture coordinates."""
     material = getattr(mesh.visual, "material", None)
-    if path.suffix.lower() == ".obj" and b"mtllib" not in path.read_bytes():
+    if path.suffix.lower() == ".obj" and not obj_material_files(path):
         material = None   # trimesh gives an OBJ with texture coordinates and no material a grey stand-in image
     image = getattr(material, "baseColorTexture", None) or getattr(material, "image", None)
     factor = getattr(material, "baseColorFactor", None)
@@ -277,18 +277,34 @@ def _rgb8(image) -> np.ndarray:
     return np.asarray(image.convert("RGB"), np.uint8)
 
 
-def obj_material_files(path: Path) -> list[tuple[Path, str]]:
-    """The files an OBJ's look depends on besides itself, each with what it is: its material libraries (mtllib) and
-    the texture images they name (map_Kd; the libraries that exist read for them)."""
-    files = []
-    for line in path.read_text(errors="replace").splitlines():
-        if line.startswith("mtllib"):
-            mtl = path.parent / line[len("mtllib"):].strip()
-            files.append((mtl, "material library"))
-            if mtl.is_file():
-                files += [(mtl.parent / words[-1], "texture image (map_Kd)")
-                          for words in map(str.split, mtl.read_text(errors="replace").splitlines())
-                          if len(words) > 1 and words[0] == "map_Kd"]
+def _found_by_trimesh(folder: Path, name: str) -> Path | None:
+    """The file trimesh's resolver reads for `name`, asked by a file in `folder`: the name as written (a leading /
+    dropped), else its base name, inside the folder; None where it finds none."""
+    root = folder.resolve()
+    for candidate in (name.strip(), name.strip().lstrip("/"), Path(name.strip()).name):
+        file = (root / candidate).resolve()
+        if candidate and file.is_relative_to(root) and file.is_file():
+            return file
+    return None
+
+
+def obj_material_files(path: Path) -> list[tuple[str, Path | None, str]]:
+    """What an OBJ's look depends on besides itself, read as trimesh reads it (5.x: the rest of its first mtllib
+    line; in that library the rest of each map_Kd line, in any case; both looked up from the OBJ's folder): (the
+    name as written, the file trimesh reads for it or None where it finds none, what it is)."""
+    text = path.read_text(errors="replace")
+    at = text.find("mtllib")
+    if at < 0:
+        return []
+    end = text.find("\n", at)
+    name = text[at + len("mtllib"):len(text) if end < 0 else end].strip()
+    library = _found_by_trimesh(path.parent, name)
+    files = [(name, library, "material library")]
+    if library is not None:
+        for line in library.read_text(errors="replace").splitlines():
+            if line.strip().lower().startswith("map_kd") and len(line.split()) > 1:
+                image = line[line.lower().index("map_kd") + len("map_kd"):].strip()
+                files.append((image, _found_by_trimesh(path.parent, image), "texture image (map_Kd)"))
     return files
 
 

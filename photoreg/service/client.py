@@ -291,13 +291,14 @@ def _interrupt(signum, frame) -> None:
     raise KeyboardInterrupt
 
 
-def session_options(path: str | Path) -> dict:
-    """hello.options that ask a server for what `photoreg run SESSION` does: the session file's [lighting] and
-    [render], the [reconstruction] keys a client may set and its [[objects]], each naming its mesh by file name
-    (the server looks it up in its --meshes folder)."""
-    from ..config import load_session
+def session_options(session) -> dict:
+    """hello.options that ask a server for what `photoreg run SESSION` does: the session's (a file's path, or one
+    loaded) [lighting] and [render], the [reconstruction] keys a client may set and its [[objects]], each naming
+    its mesh by file name (the server looks it up in its --meshes folder)."""
+    from ..config import Session, load_session
 
-    s = load_session(path, files=False)   # the server has the meshes; the recording is the command's
+    # the server has the meshes; the recording is the command's
+    s = session if isinstance(session, Session) else load_session(session, files=False)
     options = {"lighting": dict(vars(s.lighting)), "render": dict(vars(s.render)),
                "reconstruction": {k: getattr(s.reconstruction, k) for k in CLIENT_RECONSTRUCTION_KEYS}}
     if s.objects:
@@ -321,7 +322,7 @@ def stream_command(args) -> int:
     rec = open_recording(args.recording, fmt=session.recording.format, undistort=session.recording.undistort,
                          pose_time_offset=offset)
     indices = select_frames(args.frames or session.frames, len(rec), args.recording)
-    options: dict = session_options(args.session) if args.session else {}
+    options: dict = session_options(session) if args.session else {}
     lighting = {k: v for k, v in (("bands", args.bands), ("rays", args.rays), ("stride", args.stride),
                                   ("ray_length", args.ray_length), ("every", args.every),
                                   ("asynchronous", args.asynchronous or None)) if v is not None}
