@@ -268,7 +268,8 @@ def main() -> int:
             real = [ablation.get((name, c)) for c in real_cases]
             lines.append(f"| {name} | " + " | ".join(
                 f"{c['direction_deg']:.1f} / {c['irradiance_si_rmse_upper']:.3f} / {c['flicker']:.3f}" for c in cells)
-                + "".join(" | -" if r is None else f" | {fmt(r['flicker'], '.3f')} / {fmt(r['heldout'], '.3f')}" for r in real)
+                + "".join(" | -" if r is None else f" | {fmt(r['flicker'], '.3f')} / {fmt(r['heldout'], '.3f')}"
+                          for r in real)
                 + f" | {mean[0]:.1f} / {mean[1]:.3f} / {mean[2]:.3f} |")
         labels = [label for label, _, _, _ in variants]
         lines += ["", "Variants (the same scene kinds with another sun azimuth and seed, camera or size; cells as above; "

@@ -283,8 +283,9 @@ def main(argv: list[str] | None = None) -> int:
         print(f"photoreg {args.command}: error: {open3d_message(e)}", file=sys.stderr)
         return 2
     except MemoryError as e:
-        print(f"photoreg {args.command}: error: out of memory ({str(e) or 'an allocation failed'}): do the settings ask "
-              "for more than this machine holds (lighting.rays, stride, history, the frames' size)?", file=sys.stderr)
+        print(f"photoreg {args.command}: error: out of memory ({str(e) or 'an allocation failed'}): do the "
+              "settings ask for more than this machine holds (lighting.rays, stride, history, the frames' size)?",
+              file=sys.stderr)
         return 2
     except KeyboardInterrupt:   # Ctrl-C: what was written whole stays (files are renamed into place), no traceback
         print(f"\nphotoreg {args.command}: interrupted", file=sys.stderr)
