@@ -133,7 +133,7 @@ def _imread(path: str | os.PathLike, flags: int, what: str) -> np.ndarray:
     try:
         img = cv2.imdecode(np.frombuffer(data, np.uint8), flags)
     except cv2.error as e:
-        raise ValueError(f"{path}: not a readable {what} ({str(e).strip().splitlines()[-1]})") from None
+        raise ValueError(f"{path}: not a readable {what} ({str(e).strip().rpartition(chr(10))[2]})") from None
     if img is None:
         raise ValueError(f"{path}: not a readable {what}")
     return img
