@@ -419,6 +419,22 @@ def test_a_stream_without_poses_is_tracked_and_gets_its_poses_back(server, data_
     np.testing.assert_allclose(times, [r["timestamp"] for r in records], atol=1e-6)
 
 
+def test_a_tracked_stream_reports_its_failures_as_run_does(server, tmp_path):
+    """A tracked stream's summary lists the frames whose tracking failed, with the reasons, as `photoreg run
+    --no-poses` does (before: its "frames" counted the tracked ones alone, and no failure was listed)."""
+    rec = write_recording(tmp_path / "rec", K, N_FRAMES, with_gt=False)
+    for depth in sorted((rec / "depth").glob("*.png"))[:2]:   # no depth in the first two: tracking not started
+        cv2.imwrite(str(depth), np.zeros((K.height, K.width), np.uint16))
+    _, streamed = stream(rec, server.server.url, tmp_path / "streamed", "--no-poses")
+    assert main(["run", str(rec), "--no-poses", "--out", str(tmp_path / "ran"), "--device", "cpu", *STREAM_ARGS]) == 0
+    ran = json.loads((tmp_path / "ran" / "summary.json").read_text())["tracking"]
+    tracking = streamed["tracking"]
+    assert tracking["frames"] == ran["frames"] == N_FRAMES and tracking["failures"] == ran["failures"]
+    assert [f["frame"] for f in ran["failures"][:2]] == [0, 1]
+    assert all(f["reason"].startswith("tracking not started: 0.0% of the pixels") for f in ran["failures"][:2])
+    assert (tracking["unconfirmed"], tracking["unconfirmed_frames"]) == (ran["unconfirmed"], ran["unconfirmed_frames"])
+
+
 def test_depth_registered_at_a_lower_resolution_streams_at_its_own(server, recording, tmp_path):
     """A recording whose depth is half the colour's size (a phone's LiDAR): each frame message carries the depth at
     that size (frame.depth's width and height, a quarter of the bytes in every encoding), which decodes to the depth

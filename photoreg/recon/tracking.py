@@ -150,10 +150,10 @@ class Tracker:
         view = _View(frame, prep)
         if self.pose is None:
             if prep.valid_depth_fraction < MIN_START_DEPTH:
-                reason = (f"frame {frame.index}: tracking not started: {prep.valid_depth_fraction:.1%} of the pixels "
-                          f"have depth, the first tracked frame needs {MIN_START_DEPTH:.0%}")
+                reason = (f"tracking not started: {prep.valid_depth_fraction:.1%} of the pixels have depth, the "
+                          f"first tracked frame needs {MIN_START_DEPTH:.0%}")
                 self.stats.fail(frame.index, reason)
-                return None, [reason]
+                return None, [f"frame {frame.index}: {reason}"]
             self.pose, self.time, self._key = np.eye(4), frame.timestamp, view
             return self.pose, []
         if self.model is None:
@@ -189,9 +189,9 @@ class Tracker:
                     "no features matched with it" if matched is None else "no alignment agrees with its features"))
         self.lost = not fits
         if not fits:
-            reason = "; ".join(reasons)
+            reason = "tracking failed: " + "; ".join(reasons)
             self.stats.fail(frame.index, reason)
-            return None, [f"frame {frame.index}: tracking failed: {reason}"]
+            return None, [f"frame {frame.index}: {reason}"]
         fitness, T = max(fits, key=lambda f: f[0])
         self.stats.fit(fitness)
         self.velocity = (T, frame.timestamp - self.time)

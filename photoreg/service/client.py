@@ -353,7 +353,7 @@ def _stream(args, rec, indices: list[int], options: dict, out: Path | None) -> i
     """stream_command's replay, into the output folder `out` it holds (None: no files)."""
     from ..io.poses import write_tum_trajectory
     from ..io.recording import ReadAhead
-    from ..recon.tracking import ate_against
+    from ..recon.tracking import MAX_LISTED, ate_against
 
     skipped: list[dict] = []
     progress = Progress(len(indices), args.quiet)
@@ -366,6 +366,8 @@ def _stream(args, rec, indices: list[int], options: dict, out: Path | None) -> i
     partial = None if out is None else open(out / "lighting.jsonl.partial", "w")
 
     tracked: dict[int, tuple[float, np.ndarray]] = {}   # frame -> (timestamp, pose) the server tracked (`track`)
+    untracked: list[dict] = []   # the frames its tracking failed, each {"frame", "reason"} (from the reply's notes)
+    unconfirmed: list[int] = []  # the frames it tracked unconfirmed
 
     cleared = False   # a frame answered: the folder is this stream's (clear_earlier)
 
@@ -378,8 +380,15 @@ def _stream(args, rec, indices: list[int], options: dict, out: Path | None) -> i
                 cleared = True
             partial.write(json.dumps(record) + "\n")
             partial.flush()
-        if options.get("track") and record.get("pose") is not None:
-            tracked[record["frame"]] = (record["timestamp"], np.asarray(record["pose"], dtype=np.float64))
+        if options.get("track"):
+            said = [n.split(": ", 1)[1] for n in record["diagnostics"].get("notes", [])
+                    if n.startswith(f"frame {record['frame']}: tracking ")]
+            if record.get("pose") is not None:
+                tracked[record["frame"]] = (record["timestamp"], np.asarray(record["pose"], dtype=np.float64))
+                if any(n.startswith("tracking unconfirmed") for n in said):
+                    unconfirmed.append(record["frame"])
+            else:
+                untracked.append({"frame": record["frame"], "reason": said[0] if said else "no pose"})
         progress.step(f"frame {record['frame']}" + (" (weak)" if record["diagnostics"].get("weak") else ""))
 
     def on_composite(index: int, encoding: str, image: bytes) -> None:
@@ -402,8 +411,11 @@ def _stream(args, rec, indices: list[int], options: dict, out: Path | None) -> i
         if partial is not None:
             partial.close()
     summary = {"recording": str(rec.path), "url": args.url, "hello_ms": hello_ms, **summary, "frames_skipped": skipped}
-    if options.get("track"):   # as `photoreg run --no-poses` reports it
-        summary["tracking"] = {"frames": len(tracked)}
+    if options.get("track"):   # as `photoreg run --no-poses` reports it, from the replies
+        summary["tracking"] = {"frames": summary["frames_processed"], "failures": untracked[:MAX_LISTED],
+                               "unconfirmed": len(unconfirmed), "unconfirmed_frames": unconfirmed[:MAX_LISTED]}
+        if len(untracked) > MAX_LISTED:
+            summary["tracking"]["failures_not_listed"] = len(untracked) - MAX_LISTED
         if rec.has_poses:
             summary["tracking"].update(ate_against({i: T for i, (_, T) in tracked.items()}, rec.poses))
     if out is not None and not summary["frames_processed"]:   # an earlier stream's outputs stand
@@ -430,7 +442,7 @@ def _stream(args, rec, indices: list[int], options: dict, out: Path | None) -> i
               f"server side p50 {srv['p50']:.1f}  p95 {srv['p95']:.1f}")
     if "tracking" in summary:
         t = summary["tracking"]
-        print(f"tracked {t['frames']} of the frames answered{against_recorded(t)}")
+        print(f"tracked {len(tracked)} of the {t['frames']} frames answered{against_recorded(t)}")
     if out is not None:
         print(f"outputs in {out}: lighting.jsonl, summary.json" + (", composite/" if summary["composites"] else "")
               + (", trajectory.txt" if "tracking" in summary else ""))
