@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 
 import cv2
 import numpy as np
@@ -385,6 +386,17 @@ def test_an_interrupted_render_leaves_no_recording(tmp_path, monkeypatch):
         generate(cfg, log=None)
     assert not (tmp_path / "rec").exists() and (tmp_path / "rec.partial" / "rgb").is_dir()
     monkeypatch.setattr(gen, "_exposed", exposed)
+    # a run still writing its partial folder holds it (here this test, as another synth would): a second run into the
+    # same --out is refused and leaves it alone (before: it removed the folder under the first, and both failed)
+    from photoreg.io.atomic import hold_folder
+
+    writing = hold_folder(tmp_path / "rec.partial", "--out")
+    try:
+        with pytest.raises(ValueError, match=r"rec.partial \(--out\) is in use by another run"):
+            generate(cfg, log=None)
+        assert (tmp_path / "rec.partial" / gen.PARTIAL_MARK).is_file()
+    finally:
+        os.close(writing)
     assert generate(cfg, log=None) == tmp_path / "rec"
     assert (tmp_path / "rec" / "scene.json").is_file() and not (tmp_path / "rec.partial").exists()
     assert not (tmp_path / "rec" / gen.PARTIAL_MARK).exists()

@@ -22,7 +22,7 @@ import numpy as np
 from trimesh.exchange.obj import export_obj
 
 from ..config import ALBEDO_TEXTURE
-from ..io.atomic import atomic_path, check_output_dir, write_json, write_text
+from ..io.atomic import atomic_path, check_output_dir, hold_folder, write_json, write_text
 from ..io.images import linear_to_srgb, write_exr, write_png_rgb
 from ..io.native import NativeWriter, frame_name
 from .cameras import CAMERA_PATHS, camera_path, default_intrinsics
@@ -242,10 +242,24 @@ def generate(cfg: SynthConfig, log: Callable[[str], None] | None = print) -> Pat
         if not (out / PARTIAL_MARK).is_file():
             raise ValueError(f"--out {final}: {out} exists and is not an interrupted photoreg synth run's (it holds no "
                              f"{PARTIAL_MARK}): remove it or choose another --out")
+        held = hold_folder(out, "--out")   # a run still writing it holds it: refused, its work left alone
         say(f"removing {out}, an interrupted run's")
         shutil.rmtree(out)
+        if held is not None:
+            os.close(held)
     out.mkdir(parents=True)
-    (out / PARTIAL_MARK).write_text("an unfinished photoreg synth recording: a later run removes this folder\n")
+    held = hold_folder(out, "--out")   # held while this run writes it (the rename keeps the folder's lock)
+    try:
+        (out / PARTIAL_MARK).write_text("an unfinished photoreg synth recording: a later run removes this folder\n")
+        _render(cfg, out, final, say)
+    finally:
+        if held is not None:
+            os.close(held)
+    return final
+
+
+def _render(cfg: SynthConfig, out: Path, final: Path, say: Callable[[str], None]) -> None:
+    """generate's rendering into the partial folder `out` it holds, renamed to `final` when whole."""
     t_start = time.perf_counter()
     mi = mitsuba()
     layout, env_image, env_desc, rotation, K, poses = _world(cfg)
@@ -334,7 +348,6 @@ def generate(cfg: SynthConfig, log: Callable[[str], None] | None = print) -> Pat
     total = time.perf_counter() - t_start
     say(f"wrote {cfg.frames} frames to {final} in {total:.1f} s ({np.mean(per_frame):.2f} s/frame, "
         f"{mi.variant()}, exposure {exposure:.4g})")
-    return final
 
 
 def synth_command(args) -> int:
