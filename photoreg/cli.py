@@ -232,8 +232,10 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--device", choices=["auto", "cpu", "cuda"], default=None)
     b.add_argument("--results-dir", default="benchmarks/results",
                    help="JSON rows per device and ground-truth spp go here")
-    b.add_argument("--md", default="benchmarks/renderers.md", help="report rebuilt from every device's rows")
-    b.add_argument("--plot", default="benchmarks/renderers.png", help="ms against si-RMSE plot")
+    b.add_argument("--md", help="report rebuilt from every device's rows in --results-dir (default "
+                                "benchmarks/renderers.md, or renderers.md in another --results-dir)")
+    b.add_argument("--plot", help="ms against si-RMSE plot (default benchmarks/renderers.png, or renderers.png in "
+                                  "another --results-dir)")
     b.add_argument("--insert-mesh", help="insert this mesh file instead of the cube (photoreg synth --insert-mesh); "
                                          "its rows go to a JSON file of their own")
 

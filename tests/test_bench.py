@@ -148,6 +148,10 @@ def test_sweep_option_errors(tmp_path, capsys):
     assert f"{tmp_path / 'cut.csv'}:2: not a whole row of a speed/error table" in capsys.readouterr().err
     assert main(["bench", "speed", str(rec), "--json", str(tmp_path / "cut.csv" / "x.json")]) == 2
     assert f"(--json): {tmp_path / 'cut.csv'} is a file, not a folder" in capsys.readouterr().err
+    index = next(p for p in sorted(Path(rec).iterdir()) if p.suffix == ".txt")   # an input of the run: refused
+    kept = index.read_bytes()
+    assert main(["bench", "speed", str(rec), "--json", str(index)]) == 2
+    assert f"{index} (--json) is the input's file" in capsys.readouterr().err and index.read_bytes() == kept
     # every setting of the grid checked before a scene is rendered (before: after, and without naming the options)
     scenes = tmp_path / "scenes"
     assert main(["bench", "sweep", "--scenes", "plane", "--size", "32x24", "--frames", "3", "--spp", "1",

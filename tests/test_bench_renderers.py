@@ -42,9 +42,12 @@ def test_bench_renderers_tiny(tmp_path, capsys):
     assert (tmp_path / "r.png").stat().st_size > 1000
 
     # another scene joins the file, the tabletop's rows kept (before: the file held the last run's scenes alone)
-    assert main(args + ["--scenes", " plane", "--renderers", "none"]) == 0
+    # (with --results-dir alone, the report and plot go into it: before, they replaced the committed ones)
+    assert main(args[:-4] + ["--scenes", " plane", "--renderers", "none"]) == 0
     rows = json.loads((res / "renderers_cpu_4spp.json").read_text())["rows"]
     assert [r for r in rows if r["scene"] == "tabletop"] == run["rows"] and any(r["scene"] == "plane" for r in rows)
+    assert "| plane | none |" in (res / "renderers.md").read_text() and (res / "renderers.png").is_file()
+    assert "| plane |" not in (tmp_path / "r.md").read_text()
     # refused before any work: a scene kind that does not exist, a run of another size into the file, a file that
     # is not a result
     capsys.readouterr()

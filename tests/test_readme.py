@@ -60,11 +60,9 @@ COMMANDS: dict[str, tuple[str, dict]] = {
         ("run", {"--size": "64x48", "--frames": "3", "--spp": "4", "--warmup": "1", "--strides": "8",
                  "--rays": "8", "--bands": "2", "--device": "cpu", "--synth-dir": "gen/sweep",
                  "--csv": "out/sweep.csv", "--plot": "out/sweep.png"}),
-    "photoreg bench renderers --scenes tabletop,corner --size 160x120 --frames 8 --results-dir /tmp/r "
-    "--md /tmp/r/renderers.md --plot /tmp/r/renderers.png":
+    "photoreg bench renderers --scenes tabletop,corner --size 160x120 --frames 8 --results-dir /tmp/r":
         ("run", {"--scenes": "tabletop", "--size": "64x48", "--frames": "3", "--spp": "4", "--device": "cpu",
-                 "--synth-dir": "gen/bench", "--results-dir": "out/r", "--md": "out/r/renderers.md",
-                 "--plot": "out/r/renderers.png"}),
+                 "--synth-dir": "gen/bench", "--results-dir": "out/r"}),
     "photoreg bench speed path/to/recording --device cuda --stride 4 --rays 169 --bands 4":
         ("run", {"--device": "cpu", "--rays": "8", "--frames": "0:3", "--warmup": "1"}),
     "photoreg bench speed sessions/demo.toml --device cpu": ("run", {"--rays": "8", "--bands": "3", "--frames": "0:3",

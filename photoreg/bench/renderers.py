@@ -217,6 +217,11 @@ def renderers_command(args) -> int:
     renderers = {n: get_renderer(n) for n in names}
     kinds = scene_kinds(args.scenes)
     w, h = parse_size(args.size)
+    # the report is rebuilt from --results-dir's rows alone: the committed one only from the committed rows
+    committed = Path(args.results_dir).resolve() == (Path("benchmarks") / "results").resolve()
+    args.md = args.md or ("benchmarks/renderers.md" if committed else str(Path(args.results_dir) / "renderers.md"))
+    args.plot = args.plot or ("benchmarks/renderers.png" if committed else
+                              str(Path(args.results_dir) / "renderers.png"))
     check_output_file(args.md, "--md")
     check_output_file(args.plot, "--plot")
     check_output_dir(args.results_dir, "--results-dir")

@@ -25,7 +25,7 @@ import cv2
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from ..io.atomic import check_output_file, write_json
+from ..io.atomic import check_not_an_input, check_output_file, write_json
 from ..io.images import read_exr, read_rgb, srgb_to_linear
 from ..config import parse_frames
 from ..io.recording import Recording, detect_format, open_recording
@@ -497,28 +497,20 @@ def format_report(result: dict) -> str:
     return "\n".join(lines)
 
 
-def _check_not_an_input(json_out: str, out: str, recording: str) -> None:
-    """Refuse a --json path that is an existing file of the run or of the recording (OUT/summary.json, say), unless
-    it holds scores written before: writing there would replace what was scored."""
-    target = Path(json_out).resolve()
-    if not target.is_file():
-        return
-    for folder, whose in ((out, "the run's"), (recording, "the recording's")):
-        if target.is_relative_to(Path(folder).resolve()):
-            try:
-                earlier = json.loads(target.read_text())
-            except (OSError, ValueError):
-                earlier = None
-            if not (isinstance(earlier, dict) and {"out", "recording", "lighting"} <= earlier.keys()):
-                raise FileExistsError(f"{json_out} (--json) is {whose} file, not scores written before: writing "
-                                      "the scores there would replace it; give another path")
+def _scores(file: Path) -> bool:
+    """Whether `file` holds scores `photoreg score --json` wrote."""
+    try:
+        earlier = json.loads(file.read_text())
+    except (OSError, ValueError):
+        return False
+    return isinstance(earlier, dict) and {"out", "recording", "lighting"} <= earlier.keys()
 
 
 def score_command(args) -> int:
     """CLI entry: print the report, write --json atomically when given."""
     if getattr(args, "json_out", None):
         check_output_file(args.json_out, "--json")
-        _check_not_an_input(args.json_out, args.out, args.gt)
+        check_not_an_input(args.json_out, "--json", {"the run's": args.out, "the recording's": args.gt}, _scores)
     result = score(args.out, args.gt, composite=bool(getattr(args, "composite", False)))
     if getattr(args, "json_out", None):
         write_json(args.json_out, result)

@@ -13,7 +13,7 @@ import sys
 import numpy as np
 
 from ..config import Session, load_session, select_frames, validate
-from ..io.atomic import check_output_file, write_json
+from ..io.atomic import check_not_an_input, check_output_file, write_json
 
 BARE_SETTINGS = (4, 64, 3)   # a recording folder's lighting stride, rays and bands (the benchmarks' live setting)
 DEFAULT_FRAMES = "0:12"      # where neither --frames nor the session names frames
@@ -129,6 +129,9 @@ def speed_command(args) -> int:
             setattr(s.lighting, key, value)
     if args.no_poses:
         s.recording.use_poses = False
+    if args.json_out:   # not the session file nor a file of its recording
+        check_not_an_input(args.json_out, "--json", {"the input's": args.recording,
+                                                      "the recording's": s.recording.path})
     validate(s)
     res = bench_recording(s, warmup=args.warmup)
     stages = "  ".join(f"{k} {v:.1f}" for k, v in res["ms_mean"].items())

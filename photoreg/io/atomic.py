@@ -6,6 +6,7 @@ import math
 import os
 import sys
 import tempfile
+from collections.abc import Callable
 from contextlib import contextmanager
 from pathlib import Path
 
@@ -72,6 +73,21 @@ def check_output_file(path: str | os.PathLike, option: str) -> None:
             if not parent.is_dir():
                 raise NotADirectoryError(f"{path} ({option}): {parent} is a file, not a folder")
             return
+
+
+def check_not_an_input(path: str | os.PathLike, option: str, inputs: dict[str, str | os.PathLike],
+                       earlier: Callable[[Path], bool] = lambda _file: False) -> None:
+    """Refuse, before any work is done, an output file's path (`option`: what gave it) that is an existing input file
+    of the command or lies in an input folder (`inputs`: whose, e.g. "the run's", -> its path), unless earlier(file)
+    says it holds this command's own earlier output: writing there would replace what the command reads."""
+    target = Path(path).resolve()
+    if not target.is_file():
+        return
+    for whose, source in inputs.items():
+        source = Path(source).resolve()
+        if (target == source or target.is_relative_to(source)) and not earlier(target):
+            raise FileExistsError(f"{path} ({option}) is {whose} file: writing there would replace it; give another "
+                                  "path")
 
 
 def hold_folder(path: str | os.PathLike, option: str) -> int | None:
