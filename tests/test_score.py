@@ -196,6 +196,16 @@ def test_a_run_of_another_recording_is_refused_by_its_timestamps(tmp_path):
     (out / "summary.json").write_text(json.dumps({"recording": "/data/elsewhere"}))
     notes = score(out, rec)["lighting"]["notes"]
     assert f"the run read /data/elsewhere, scored against {rec} (their frames' timestamps agree)" in notes
+    # that folder still there with another ground truth: another recording made alike (a tracked run, lit from no
+    # recorded pose, passed before), refused; a copy of the same ground truth keeps the note
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    (elsewhere / "lighting_gt.json").write_text((rec / "lighting_gt.json").read_text())
+    (out / "summary.json").write_text(json.dumps({"recording": str(elsewhere)}))
+    assert any(n.startswith(f"the run read {elsewhere}") for n in score(out, rec)["lighting"]["notes"])
+    (elsewhere / "lighting_gt.json").write_text((rec / "lighting_gt.json").read_text().replace("0", "1", 1))
+    with pytest.raises(ValueError, match=f"the run read {elsewhere}, whose lighting_gt.json differs from"):
+        score(out, rec)
     (out / "summary.json").write_text(json.dumps({"recording": str(rec)}))
     assert not any("the run read" in n for n in score(out, rec)["lighting"]["notes"])
     # the generator's recordings share their timestamps: a run lit from recorded poses other than the recording's

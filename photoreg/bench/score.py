@@ -192,8 +192,9 @@ def read_summary(out: str | Path) -> dict:
 def same_recording(out: str | Path, recording: str | Path, rec: Recording | None, summary: dict,
                    timestamps: dict[int, float | None]) -> str | None:
     """ValueError where the run's frames carry other timestamps than `rec`'s (--gt is not the recording it ran on); a
-    note where summary.json names another folder whose frames have the same timestamps (a moved or copied recording,
-    or another recording made alike: the generator's all start at 0 s), else None."""
+    note where summary.json names another folder whose frames have the same timestamps (a moved or copied recording),
+    ValueError where that folder still holds another ground truth or scene (lighting_gt.json, scene.json: another
+    generated recording, whose timestamps all start at 0 s alike), else None."""
     if rec is not None:
         off = [i for i, t in sorted(timestamps.items()) if t is not None and abs(t - rec.timestamps[i]) > 1e-3]
         if off:
@@ -203,6 +204,11 @@ def same_recording(out: str | Path, recording: str | Path, rec: Recording | None
                              "--gt the recording it ran on" + (f" ({ran})?" if isinstance(ran, str) else "?"))
     ran = summary.get("recording")
     if isinstance(ran, str) and Path(ran).is_absolute() and Path(ran).resolve() != Path(recording).resolve():
+        for name in ("lighting_gt.json", "scene.json"):   # timestamps alone: the generator's all start at 0 s
+            theirs, ours = Path(ran) / name, Path(recording) / name
+            if theirs.is_file() and ours.is_file() and theirs.read_bytes() != ours.read_bytes():
+                raise ValueError(f"{out}: the run read {ran}, whose {name} differs from {ours}: is --gt the recording "
+                                 "it ran on?")
         return f"the run read {ran}, scored against {recording} (their frames' timestamps agree)"
     return None
 
