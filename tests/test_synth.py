@@ -571,3 +571,16 @@ def test_inserted_mesh_against_mitsuba(tmp_path):
 
     smooth, flat = correlation(True), correlation(False)
     assert smooth > 0.6 and smooth > flat + 0.06, (smooth, flat)
+
+
+def test_an_environment_must_be_high_dynamic_range(tmp_path):
+    """--env takes radiance (.hdr, .exr); an 8-bit picture's display values are refused (they were taken for linear
+    radiance, and the ground-truth SH made of them)."""
+    picture = tmp_path / "sky.png"
+    cv2.imwrite(str(picture), np.full((8, 16, 3), 200, np.uint8))
+    with pytest.raises(ValueError, match=r"sky.png: a uint8 image, not a high dynamic range one"):
+        load_environment(str(picture))
+    radiance = tmp_path / "sky.hdr"
+    cv2.imwrite(str(radiance), np.full((8, 16, 3), 2.5, np.float32))
+    image, _ = load_environment(str(radiance))
+    assert np.allclose(image, 2.5, rtol=0.02)

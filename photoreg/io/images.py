@@ -246,4 +246,7 @@ def read_hdr(path: str | os.PathLike) -> np.ndarray:
     img = cv2.imread(str(p), cv2.IMREAD_ANYDEPTH | cv2.IMREAD_COLOR)
     if img is None:
         raise ValueError(f"{path}: not a readable HDR image")
+    if not np.issubdtype(img.dtype, np.floating):   # an 8- or 16-bit picture: display values, not radiance
+        raise ValueError(f"{path}: a {img.dtype} image, not a high dynamic range one: give the environment as Radiance "
+                         ".hdr or OpenEXR .exr (linear radiance)")
     return cv2.cvtColor(img, cv2.COLOR_BGR2RGB).astype(np.float32)
