@@ -166,10 +166,11 @@ def load_object(obj: ObjectConfig) -> VirtualObject:
         albedo = np.asarray(obj.albedo, dtype=np.float64)
         if albedo.shape != (3,) or not np.all(np.isfinite(albedo)) or np.any(albedo < 0):
             raise ValueError(f"{path}: object albedo must be 3 finite non-negative numbers, got {obj.albedo}")
-    if textured and path.suffix.lower() == ".obj":   # trimesh goes on without them: the flat Kd colour, or none
-        for name, file, what in obj_material_files(path):
-            if file is None:
-                raise FileNotFoundError(f"{path}: its {what} {name!r} is missing (looked for in {path.parent})")
+    obj_file = path.suffix.lower() == ".obj"
+    materials = obj_material_files(path) if textured and obj_file else []
+    for name, file, what in materials:   # trimesh goes on without them: the flat Kd colour, or none
+        if file is None:
+            raise FileNotFoundError(f"{path}: its {what} {name!r} is missing (looked for in {path.parent})")
     try:   # the parts apart: each keeps its own material (mesh_parts)
         parts = mesh_parts(trimesh.load(str(path), process=True))
     except Exception as e:  # trimesh raises many types for unreadable files
@@ -194,7 +195,7 @@ def load_object(obj: ObjectConfig) -> VirtualObject:
         normals = (normals / np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)).astype(np.float32)
     if not textured:
         return VirtualObject(str(path), v, faces, albedo.astype(np.float32), T, normals=normals)
-    varying = [part_albedo(m, path) for m in parts]
+    varying = [part_albedo(m, path, obj_file and not materials) for m in parts]
     textures = [a.texture for a in varying if a.texture is not None]
     index = np.cumsum([0] + [a.texture is not None for a in varying])   # each part's texture, if it has one
     source = np.concatenate([np.full(len(m.faces), CORNER_COLOURS if a.texture is None else k, np.int32)
@@ -216,16 +217,16 @@ class PartAlbedo:
     texture: np.ndarray | None
 
 
-def part_albedo(mesh, path: Path) -> PartAlbedo:
-    """Vertex or face colours (8-bit sRGB) at the corners, else the part's base-colour texture (base_colour_texture)
-    with zero corners."""
+def part_albedo(mesh, path: Path, bare_obj: bool) -> PartAlbedo:
+    """Vertex or face colours (8-bit sRGB) at the corners, else the part's base-colour texture (base_colour_texture;
+    `bare_obj`: the part of an OBJ without a material library) with zero corners."""
     kind = getattr(mesh.visual, "kind", None)
     if kind in ("vertex", "face"):   # colours at the vertices (or per face), 8-bit sRGB
         colours = mesh.visual.vertex_colors[mesh.faces] if kind == "vertex" else np.repeat(
             np.asarray(mesh.visual.face_colors)[:, None], 3, axis=1)
         corners = srgb_to_linear(np.ascontiguousarray(np.asarray(colours, np.uint8)[..., :3])).astype(np.float32)
         return PartAlbedo(np.zeros((len(mesh.vertices), 2), np.float32), corners, corners.mean(axis=(0, 1)), None)
-    uv, texture = base_colour_texture(mesh, path)
+    uv, texture = base_colour_texture(mesh, path, bare_obj)
     return PartAlbedo(uv, np.zeros((len(mesh.faces), 3, 3), np.float32), texture.mean(axis=(0, 1)), texture)
 
 
@@ -241,13 +242,13 @@ def mesh_parts(loaded) -> list:
     return [loaded]
 
 
-def base_colour_texture(mesh, path: Path) -> tuple[np.ndarray, np.ndarray]:
+def base_colour_texture(mesh, path: Path, bare_obj: bool) -> tuple[np.ndarray, np.ndarray]:
     """(uv (V, 2) float32, linear RGB albedo (H, W, 3) float32) of a trimesh mesh's base colour: its texture image
     decoded from sRGB, times the material's baseColorFactor where it has one (glTF's PBR materials; OBJ's and PLY's
     images alone), or that factor alone (a 1 x 1 texture) where a glTF material has no image (an OBJ's: its Kd).
     ValueError naming the file when there is neither, or an image without texture coordinates."""
     material = getattr(mesh.visual, "material", None)
-    if path.suffix.lower() == ".obj" and not obj_material_files(path):
+    if bare_obj:
         material = None   # trimesh gives an OBJ with texture coordinates and no material a grey stand-in image
     image = getattr(material, "baseColorTexture", None) or getattr(material, "image", None)
     factor = getattr(material, "baseColorFactor", None)
